@@ -1,0 +1,1 @@
+"""Drift controller: vehicle and tyre model, equilibrium maps, reference selector, NMPC."""

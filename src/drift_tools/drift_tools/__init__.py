@@ -1,0 +1,1 @@
+"""Tools of the drift stack: process launcher, MCAP recorder, topic inspection, bag reading."""

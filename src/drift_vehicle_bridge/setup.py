@@ -1,0 +1,24 @@
+from setuptools import find_packages, setup
+
+package_name = 'drift_vehicle_bridge'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='drift stack developers',
+    maintainer_email='drift-stack@example.org',
+    description='CAN gateway between the car and the drift stack: DBC codec, E2E checks, arming.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'bridge = drift_vehicle_bridge.nodes.bridge_node:main',
+        ],
+    },
+)
