@@ -14,7 +14,7 @@ setup(
     zip_safe=True,
     maintainer='drift stack developers',
     maintainer_email='drift-stack@example.org',
-    description='Plant simulator of the drift stack: a double-track car richer than the controller's model.',
+    description='Plant simulator of the drift stack: a double-track car richer than the controller model.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

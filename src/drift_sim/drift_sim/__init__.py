@@ -1,1 +1,1 @@
-"""Plant simulator of the drift stack: a double-track car richer than the controller's model."""
+"""Plant simulator of the drift stack: a double-track car richer than the controller model."""
