@@ -1,0 +1,194 @@
+"""Plain data passed between the stack's blocks: the ROS-free twins of the drift_msgs types.
+
+Every block (simulator, bridge, reference selector, NMPC) speaks these; only ``nodes/convert.py``
+of each package turns them into messages. SI units and radians throughout. Sign convention of the
+whole stack: x forward, y left, yaw rate positive counter-clockwise; a left-hand (counter-clockwise)
+drift has ``r > 0``, ``beta < 0`` and, once it is a full drift, counter-steer ``delta < 0``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from enum import IntEnum, IntFlag
+
+
+class Validity(IntFlag):
+    """Per-signal validity bits; same values as the ``VALID_*`` constants of VehicleState.msg."""
+
+    V = 1
+    BETA = 2
+    R = 4
+    VX_VY = 8
+    AX_AY = 16
+    WHEEL_SPEEDS = 32
+    DELTA = 64
+    STEERING_TORQUE = 128
+    DRIVE_TORQUE = 256
+    BRAKE_PEDAL = 512
+    POSE = 1024
+    ALL = 2047
+
+    # What the controller cannot do without: speed, sideslip, yaw rate, wheel speeds, steering.
+    CONTROL = V | BETA | R | WHEEL_SPEEDS | DELTA
+
+
+class Direction(IntEnum):
+    """Drift direction; the value is the sign of the yaw rate."""
+
+    RIGHT = -1
+    NONE = 0
+    LEFT = 1
+
+
+class Mode(IntEnum):
+    """Actuation mode of a command; same values as DriftCommand.msg ``MODE_*``."""
+
+    OFF = 0
+    FULL = 1
+    TORQUE_ONLY = 2
+    FALLBACK = 3
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Vehicle state as measured or estimated on the car (or by the simulator).
+
+    Attributes
+    ----------
+    stamp : float
+        Time of the measurement [s] (sim or wall time, the clock of the publisher).
+    V : float
+        Speed over ground [m/s].
+    beta : float
+        Sideslip angle ``atan2(vy, vx)`` [rad].
+    r : float
+        Yaw rate [rad/s].
+    wheel_speeds : tuple of 4 float
+        Wheel angular speeds FL, FR, RL, RR [rad/s].
+    delta : float
+        Road-wheel steering angle [rad].
+    """
+
+    stamp: float
+    V: float
+    beta: float
+    r: float
+    vx: float = 0.0
+    vy: float = 0.0
+    ax: float = 0.0
+    ay: float = 0.0
+    wheel_speeds: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    delta: float = 0.0
+    steering_torque: float = 0.0   # driver torque at the steering wheel [Nm]
+    drive_torque: float = 0.0      # rear axle drive torque at the wheels, as applied [Nm]
+    brake_pedal: bool = False
+    x: float = 0.0                 # pose in the map frame [m, m, rad]
+    y: float = 0.0
+    yaw: float = 0.0
+    validity: int = int(Validity.ALL)
+
+    @property
+    def omega_F(self) -> float:
+        """Front axle wheel speed, mean of left and right [rad/s]."""
+        return 0.5 * (self.wheel_speeds[0] + self.wheel_speeds[1])
+
+    @property
+    def omega_R(self) -> float:
+        """Rear axle wheel speed, mean of left and right [rad/s]."""
+        return 0.5 * (self.wheel_speeds[2] + self.wheel_speeds[3])
+
+    def is_finite(self) -> bool:
+        """True when every numeric field is finite (NaN/inf never reach a solver)."""
+        return all(math.isfinite(v) for v in _numbers(self))
+
+    def has(self, bits: Validity) -> bool:
+        """True when all the given validity bits are set."""
+        return (self.validity & int(bits)) == int(bits)
+
+
+@dataclass(frozen=True)
+class Equilibrium:
+    """One steady-state drift equilibrium of the single-track model (paper Eq. 3).
+
+    Attributes
+    ----------
+    V : float
+        Speed [m/s].
+    beta : float
+        Sideslip angle [rad].
+    r : float
+        Yaw rate [rad/s]; path radius is ``V / r``.
+    omega_F, omega_R : float
+        Front and rear wheel speeds [rad/s].
+    delta : float
+        Road-wheel steering angle [rad].
+    T_R : float
+        Rear axle drive torque at the wheels [Nm].
+    """
+
+    V: float
+    beta: float
+    r: float
+    omega_F: float
+    omega_R: float
+    delta: float
+    T_R: float
+
+    def mirrored(self) -> 'Equilibrium':
+        """The same equilibrium driven the other way round (left <-> right)."""
+        return Equilibrium(self.V, -self.beta, -self.r, self.omega_F, self.omega_R,
+                           -self.delta, self.T_R)
+
+    def is_finite(self) -> bool:
+        return all(math.isfinite(v) for v in _numbers(self))
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What the reference selector hands the NMPC each cycle.
+
+    ``horizon`` optionally holds one equilibrium per NMPC stage (from the predicted arc length);
+    empty means "hold ``target`` over the horizon".
+    """
+
+    stamp: float
+    target: Equilibrium
+    direction: Direction = Direction.NONE
+    horizon: tuple[Equilibrium, ...] = ()
+    curvature: float = 0.0       # path curvature K(s) [1/m], positive turning left
+    curvature_cmd: float = 0.0   # curvature after the path-following correction [1/m]
+    s: float = 0.0               # arc length along the path [m]
+    e_y: float = 0.0             # lateral error, positive left of the path [m]
+    heading_error: float = 0.0   # vehicle yaw minus path tangent angle [rad]
+    clamped: bool = False        # the map lookup left the grid and was clamped
+
+    def is_finite(self) -> bool:
+        return (self.target.is_finite() and all(e.is_finite() for e in self.horizon)
+                and all(math.isfinite(v) for v in _numbers(self)))
+
+
+@dataclass(frozen=True)
+class Command:
+    """Actuator command: road-wheel steering angle and rate, rear axle drive torque."""
+
+    stamp: float
+    delta: float
+    delta_rate: float
+    drive_torque: float
+    mode: Mode = Mode.FULL
+
+
+def _numbers(obj) -> list[float]:
+    """Every float field of a dataclass, tuples of floats flattened; nested dataclasses skipped."""
+    out: list[float] = []
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            out.append(float(value))
+        elif isinstance(value, tuple) and all(isinstance(v, (int, float)) for v in value):
+            out.extend(float(v) for v in value)
+    return out
+
+
+__all__ = ['Command', 'Direction', 'Equilibrium', 'Mode', 'Reference', 'Validity',
+           'VehicleState']
