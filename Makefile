@@ -1,0 +1,19 @@
+# Two entry points: `make run` (the simulated stack, recorded and summarised) and `make test`.
+# Both bring .venv up to date first (scripts/setup.sh; seconds when nothing changed).
+PY       := .venv/bin/python
+GRAPH    ?= sim
+DURATION ?= 20
+SCENARIO ?=
+RUN_DIR  ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
+
+.PHONY: setup run test
+
+setup:
+	@scripts/setup.sh
+
+run: setup
+	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) --bag $(RUN_DIR) \
+		$(if $(SCENARIO),--scenario $(SCENARIO)) $(ARGS)
+
+test:
+	@.ci/run $(ARGS)
