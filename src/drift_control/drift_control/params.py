@@ -10,7 +10,7 @@ import json
 import math
 import os
 import typing
-from dataclasses import MISSING, asdict, fields, is_dataclass
+from dataclasses import MISSING, asdict, dataclass, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -126,3 +126,137 @@ def params_hash(*objs) -> str:
     """A stable short hash of parameter dataclasses (to tie a map file to the model it came from)."""
     text = json.dumps([asdict(o) for o in objs], sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+# --- vehicle and tyres -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SimpleMF:
+    """Simplified Magic Formula coefficients for one slip direction (paper section II-B)."""
+
+    B: float   # stiffness factor [-]
+    C: float   # shape factor [-]
+    D: float   # peak friction coefficient on a mu = 1 surface [-]
+    E: float = 0.0   # curvature factor [-], <= 1
+
+    def __post_init__(self):
+        require(self.B > 0 and self.C > 0 and self.D > 0, 'SimpleMF', 'B, C, D must be positive')
+        require(self.E <= 1.0, 'SimpleMF.E', f'must be <= 1, got {self.E}')
+
+
+@dataclass(frozen=True)
+class FrontTyreParams:
+    """Front axle: simplified Magic Formula, lateral and longitudinal."""
+
+    lateral: SimpleMF
+    longitudinal: SimpleMF
+
+
+@dataclass(frozen=True)
+class CombinedTyreParams:
+    """Magic Formula 5.2-style combined-slip coefficients (no shifts, no camber), one axle or wheel.
+
+    Names follow MF 5.2: p* pure slip, r* combined-slip weighting. ``Fz0`` is the nominal load the
+    load-sensitivity terms are relative to.
+    """
+
+    Fz0: float
+    pCx1: float
+    pDx1: float
+    pDx2: float
+    pEx1: float
+    pKx1: float
+    pKx2: float
+    pKx3: float
+    pCy1: float
+    pDy1: float
+    pDy2: float
+    pEy1: float
+    pKy1: float
+    pKy2: float
+    rBx1: float
+    rBx2: float
+    rCx1: float
+    rBy1: float
+    rBy2: float
+    rBy3: float
+    rCy1: float
+
+    def __post_init__(self):
+        require(self.Fz0 > 0, 'CombinedTyreParams.Fz0', 'must be positive')
+        for name in ('pCx1', 'pDx1', 'pKx1', 'pCy1', 'pDy1', 'pKy1', 'pKy2'):
+            require(getattr(self, name) > 0, f'CombinedTyreParams.{name}', 'must be positive')
+        require(self.pEx1 <= 1 and self.pEy1 <= 1, 'CombinedTyreParams', 'pEx1, pEy1 must be <= 1')
+
+
+@dataclass(frozen=True)
+class ActuatorLimits:
+    """Bounds of the controller's inputs and of the steering state."""
+
+    delta_max: float       # road-wheel steering angle [rad]
+    delta_dot_max: float   # road-wheel steering rate [rad/s]
+    T_R_min: float         # rear axle drive torque [Nm]
+    T_R_max: float         # rear axle drive torque [Nm]
+
+    def __post_init__(self):
+        require(0 < self.delta_max < 1.5, 'limits.delta_max', 'must be in (0, 1.5) rad')
+        require(self.delta_dot_max > 0, 'limits.delta_dot_max', 'must be positive')
+        require(self.T_R_min < self.T_R_max, 'limits', 'T_R_min must be below T_R_max')
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Single-track model parameters (paper notation: a, b, I_z; per-axle tyres)."""
+
+    m: float          # total mass [kg]
+    L: float          # wheelbase [m]
+    a: float          # CoG to front axle [m]; b = L - a
+    h: float          # CoG height [m]
+    I_z: float        # yaw inertia [kg m^2]
+    c_drag: float     # 0.5 rho c_d A [kg/m]
+    g: float          # gravity [m/s^2]
+    R_F: float        # front rolling radius [m]
+    R_R: float        # rear rolling radius [m]
+    I_wF: float       # front axle spin inertia [kg m^2]
+    I_wR: float       # rear axle spin inertia incl. reflected driveline [kg m^2]
+    v_eps: float      # slip regularisation speed [m/s]
+    limits: ActuatorLimits
+    front_tyre: FrontTyreParams
+    rear_tyre: CombinedTyreParams
+
+    def __post_init__(self):
+        for name in ('m', 'L', 'h', 'I_z', 'g', 'R_F', 'R_R', 'I_wF', 'I_wR', 'v_eps'):
+            require(getattr(self, name) > 0, f'vehicle.{name}', 'must be positive')
+        require(0 < self.a < self.L, 'vehicle.a', f'must lie between 0 and L={self.L}')
+        require(self.c_drag >= 0, 'vehicle.c_drag', 'must be >= 0')
+
+    @property
+    def b(self) -> float:
+        """CoG to rear axle [m]."""
+        return self.L - self.a
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A road surface: the peak friction coefficient the tyre models scale with."""
+
+    name: str
+    mu: float
+
+    def __post_init__(self):
+        require(0 < self.mu <= 2.0, f'surface {self.name}.mu', f'must be in (0, 2], got {self.mu}')
+
+
+def load_vehicle(path: str | os.PathLike | None = None) -> VehicleParams:
+    """Load the controller's vehicle parameters (default ``config/vehicle/m3_competition.yaml``)."""
+    path = Path(path) if path else config_dir() / 'vehicle' / 'm3_competition.yaml'
+    return from_dict(VehicleParams, load_yaml(path), f'{path.name}')
+
+
+def load_surface(name: str, path: str | os.PathLike | None = None) -> Surface:
+    """Load a named surface (``dry``, ``wet``) from ``config/vehicle/surfaces.yaml``."""
+    path = Path(path) if path else config_dir() / 'vehicle' / 'surfaces.yaml'
+    raw = load_yaml(path)
+    if name not in raw:
+        raise ParamError(f'{path.name}: no surface {name!r}; known: {sorted(raw)}')
+    return from_dict(Surface, {'name': name, **raw[name]}, f'{path.name}.{name}')
