@@ -1,0 +1,209 @@
+"""ReferenceSelector: dynamic referencing -- the map equilibrium for the corrected path curvature.
+
+Paper Sec. IV: the offline equilibria are selected along the path by arc length ``s_x``; a
+path-following controller alters the path curvature in proportion to the lateral error ``e_y``,
+and the altered curvature indexes the lookup table. Here::
+
+    K_cmd = K(s) - (k_p e_y + k_d de_y/dt + k_i int e_y dt),   de_y/dt = V sin(psi + beta)  (Eq. 1)
+
+with positive gains: a car left of the path (``e_y > 0``) is asked to turn more to the right. On
+a left circle the outside is ``e_y < 0``, so an outside car gets a tighter left curvature.
+``|K_cmd|`` is limited to the map's curvature range and rate-limited in time; inside the band
+``|K_cmd| < 1/radius_max`` the left and right equilibria at ``radius_max`` are blended, so a
+left <-> right transition passes continuously through (beta, r, delta) = 0.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, fields, replace
+from typing import Callable
+
+from drift_control.frenet import Frenet
+from drift_control.params import from_dict, load_yaml, require
+from drift_control.path import Path
+from drift_control.signals import Direction, Equilibrium, Reference, Validity, VehicleState
+
+_log = logging.getLogger(__name__)
+
+Lookup = Callable[[float, float, Direction], tuple[Equilibrium, bool]]
+
+
+@dataclass(frozen=True)
+class ReferenceParams:
+    """Reference selector parameters (``config/reference.yaml``, section ``reference``)."""
+
+    k_p: float                    # lateral error gain [1/m^2]
+    k_d: float                    # lateral error rate gain [s/m^2]
+    radius_min: float             # smallest radius of the equilibrium map [m]
+    radius_max: float             # largest radius of the map; straighter blends left/right [m]
+    k_i: float = 0.0              # lateral error integral gain [1/(m^2 s)]
+    integral_limit: float = 1.0   # anti-windup bound on int e_y dt [m s]
+    correction_limit: float = 0.05     # bound on |K_cmd - K(s)| [1/m]
+    curvature_rate_max: float = 0.5    # bound on |dK_cmd/dt| [1/(m s)]
+    beta_rate_max: float = 1.0         # bound on |d beta_ref/dt| [rad/s]
+    horizon_steps: int = 0        # equilibria along the predicted arc length (0: none)
+    horizon_dt: float = 0.02      # time between horizon stages [s]
+    window_back: float = 5.0      # Frenet search window behind the last projection [m]
+    window_forward: float = 15.0  # ... and ahead of it [m]
+    lost_distance: float = 5.0    # beyond this distance from the path search globally [m]
+    warn_interval: float = 2.0    # minimum time between two identical warnings [s]
+
+    def __post_init__(self):
+        require(0.0 < self.radius_min < self.radius_max, 'reference.radius_min',
+                'need 0 < radius_min < radius_max')
+        for f in fields(self):
+            value = getattr(self, f.name)
+            require(value >= 0.0, f'reference.{f.name}', f'must not be negative, got {value}')
+        require(self.horizon_dt > 0.0, 'reference.horizon_dt', 'must be positive')
+
+
+def load_reference_params(path) -> ReferenceParams:
+    """Read the ``reference`` section of a YAML file (``config/reference.yaml``)."""
+    raw = load_yaml(path)
+    return from_dict(ReferenceParams, raw.get('reference', raw), 'reference')
+
+
+class _Throttled:
+    """Log a warning at most once per ``interval`` seconds per key."""
+
+    def __init__(self, interval: float):
+        self._interval, self._last = interval, {}
+
+    def warning(self, key: str, msg: str, *args) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -math.inf) >= self._interval:
+            self._last[key] = now
+            _log.warning(msg, *args)
+
+
+def _blend(a: Equilibrium, b: Equilibrium, w: float) -> Equilibrium:
+    """``w * a + (1 - w) * b`` field by field."""
+    return Equilibrium(*(w * getattr(a, f.name) + (1.0 - w) * getattr(b, f.name)
+                         for f in fields(Equilibrium)))
+
+
+def _limit(value: float, target: float, step: float) -> float:
+    """``target`` moved towards no further than ``step`` from ``value``."""
+    return value + max(-step, min(step, target - value))
+
+
+class ReferenceSelector:
+    """Picks the NMPC reference along a path from an equilibrium map.
+
+    Parameters
+    ----------
+    lookup : callable
+        ``lookup(beta_abs [rad], radius [m], direction) -> (Equilibrium, clamped)``, e.g.
+        ``EquilibriumMap.lookup``.
+    path : Path
+        The path to follow, with its desired sideslip profile.
+    params : ReferenceParams
+        Gains and limits.
+    """
+
+    def __init__(self, lookup: Lookup, path: Path, params: ReferenceParams):
+        self._lookup, self.path, self.p = lookup, path, params
+        self.frenet = Frenet(path, params.window_back, params.window_forward, params.lost_distance)
+        self._warn = _Throttled(params.warn_interval)
+        self._last: Reference | None = None
+        self._integral = 0.0
+        self._beta_ref = None
+        self.rejected = 0      # states refused as non-finite or without a pose
+
+    def reset(self) -> None:
+        """Forget the previous cycle (new run): global search, zero integrator, no rate limits."""
+        self.frenet.reset()
+        self._last, self._integral, self._beta_ref = None, 0.0, None
+
+    def equilibrium(self, beta_abs: float, K_cmd: float) -> tuple[Equilibrium, Direction, bool]:
+        """The map equilibrium for sideslip magnitude [rad] and signed curvature [1/m].
+
+        Returns the equilibrium, the drift direction (NONE inside the blend band) and whether the
+        lookup clamped.
+        """
+        k_band = 1.0 / self.p.radius_max
+        k_abs = min(abs(K_cmd), 1.0 / self.p.radius_min)
+        radius = 1.0 / max(k_abs, k_band)
+        if k_abs >= k_band:
+            direction = Direction.LEFT if K_cmd > 0.0 else Direction.RIGHT
+            eq, clamped = self._lookup(beta_abs, radius, direction)
+            return eq, direction, clamped
+        left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
+        right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
+        w = 0.5 * (1.0 + K_cmd / k_band)   # 1 at +k_band (pure left), 0 at -k_band
+        return _blend(left, right, w), Direction.NONE, c_l or c_r
+
+    def select(self, state: VehicleState) -> Reference | None:
+        """The reference for ``state``; the previous one (or None) when the state is unusable."""
+        if not state.is_finite() or not state.has(Validity.POSE):
+            self.rejected += 1
+            self._warn.warning('state', 'reference: non-finite state or no pose, keeping the '
+                               'last reference (%d refused)', self.rejected)
+            return self._last
+        p, last = self.p, self._last
+        dt = state.stamp - last.stamp if last is not None else 0.0
+        dt = dt if 0.0 < dt < 1.0 else 0.0     # no rate limit on the first call or after a gap
+        fp = self.frenet.project(state.x, state.y, state.yaw)
+        e_y_rate = state.V * math.sin(fp.heading_error + state.beta)
+        k_max = 1.0 / p.radius_min
+        correction = p.k_p * fp.e_y + p.k_d * e_y_rate + p.k_i * self._integral
+        correction = max(-p.correction_limit, min(p.correction_limit, correction))
+        K_raw = fp.K - correction
+        K_cmd = max(-k_max, min(k_max, K_raw))
+        saturated = K_cmd != K_raw or abs(correction) >= p.correction_limit
+        # anti-windup: integrate only while the integral does not push further into a limit
+        if not (saturated and fp.e_y * self._integral > 0.0):
+            self._integral = max(-p.integral_limit,
+                                 min(p.integral_limit, self._integral + fp.e_y * dt))
+        if last is not None and dt > 0.0:
+            K_cmd = _limit(last.curvature_cmd, K_cmd, p.curvature_rate_max * dt)
+        beta_abs = float(self.path.beta_at(fp.s))
+        if self._beta_ref is not None and dt > 0.0:
+            beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
+        self._beta_ref = beta_abs
+        target, direction, clamped = self.equilibrium(beta_abs, K_cmd)
+        clamped = clamped or abs(K_raw) > k_max
+        if clamped:
+            self._warn.warning('clamp', 'reference: outside the equilibrium map at s=%.1f m '
+                               '(beta %.1f deg, K %.4f 1/m), clamped', fp.s,
+                               math.degrees(beta_abs), K_raw)
+        horizon = self._horizon(fp.s, state.V, correction, K_cmd, beta_abs, target)
+        ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
+                        curvature=fp.K, curvature_cmd=K_cmd, s=fp.s, e_y=fp.e_y,
+                        heading_error=fp.heading_error, clamped=clamped)
+        if not ref.is_finite():   # a lookup returned NaN: never hand that on
+            self.rejected += 1
+            self._warn.warning('nan', 'reference: lookup gave a non-finite equilibrium at '
+                               's=%.1f m, keeping the last reference', fp.s)
+            return last
+        self._last = ref
+        return ref
+
+    def _horizon(self, s, V, correction, K_cmd, beta_abs, target):
+        """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 is ``target``), same limits."""
+        p = self.p
+        if p.horizon_steps == 0:
+            return ()
+        out, K_prev, b_prev = [target], K_cmd, beta_abs
+        k_max = 1.0 / p.radius_min
+        for k in range(1, p.horizon_steps):
+            s_k = s + max(V, 0.0) * k * p.horizon_dt
+            K_k = max(-k_max, min(k_max, float(self.path.curvature_at(s_k)) - correction))
+            K_prev = _limit(K_prev, K_k, p.curvature_rate_max * p.horizon_dt)
+            b_prev = _limit(b_prev, float(self.path.beta_at(s_k)), p.beta_rate_max * p.horizon_dt)
+            out.append(self.equilibrium(b_prev, K_prev)[0])
+        return tuple(out)
+
+
+def mirrored_reference(ref: Reference) -> Reference:
+    """The reference for the mirror-image situation (left <-> right), for tests and analysis."""
+    return replace(ref, target=ref.target.mirrored(), direction=Direction(-int(ref.direction)),
+                   horizon=tuple(e.mirrored() for e in ref.horizon), curvature=-ref.curvature,
+                   curvature_cmd=-ref.curvature_cmd, e_y=-ref.e_y,
+                   heading_error=-ref.heading_error)
+
+
+__all__ = ['Lookup', 'ReferenceParams', 'ReferenceSelector', 'load_reference_params',
+           'mirrored_reference']
