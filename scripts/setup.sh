@@ -24,14 +24,16 @@ if [[ ! -x $V/bin/python ]]; then
 fi
 mkdir -p "$STAMPS" build
 PIP=("$V/bin/python" -m pip --disable-pip-version-check)
+# pip warns once per package about the site's flat file:// indexes; keep the rest of its stderr.
+pip_q() { "${PIP[@]}" "$@" 2> >(grep -v 'is ignored: it is neither a file nor a directory' >&2); }
 
 # 2. Pinned wheels, then point the ROS cmake exports at this machine's Python and numpy headers
 #    (the wheels were built in manylinux and name /opt/python/cp311-cp311/...).
 h=$(hash_files requirements.txt requirements-lock.txt)
 if ! stamp_ok requirements "$h"; then
     log "installing pinned requirements"
-    "${PIP[@]}" install -q $(grep -E '^(pip|setuptools|wheel)==' requirements.txt)
-    "${PIP[@]}" install -q -r requirements.txt -c requirements-lock.txt
+    pip_q install -q $(grep -E '^(pip|setuptools|wheel)==' requirements.txt)
+    pip_q install -q -r requirements.txt -c requirements-lock.txt
     py_inc=$("$V/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
     np_inc=$("$V/bin/python" -c 'import numpy; print(numpy.get_include())')
     mapfile -t files < <(grep -rlF --include='*.cmake' /opt/python/cp311-cp311 "$V/share" "$V/lib" || true)

@@ -1,0 +1,174 @@
+"""Runs a set of node processes: prefixed, coloured logs; clean shutdown; failure on a crash.
+
+No rclpy here: each node is its own OS process, started in its own session so a terminal's Ctrl-C
+reaches only the launcher, which forwards SIGINT in a defined order (recorders last) and escalates
+to SIGKILL after a timeout.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+logger = logging.getLogger(__name__)
+
+COLOURS = (36, 33, 35, 32, 34, 91, 96, 93)   # ANSI foreground codes, one per node
+CLEAN_EXIT_CODES = (0, -signal.SIGINT, 130)  # what a node may return after our SIGINT
+
+
+@dataclass
+class Proc:
+    """One started node process."""
+
+    name: str
+    argv: list
+    popen: subprocess.Popen
+    stop_last: bool = False              # stopped after the others (recorders)
+    reader: threading.Thread | None = None
+    expected_exit: bool = False
+
+
+@dataclass
+class Outcome:
+    """How a launch ended: the reason, and each node's return code (None = was killed)."""
+
+    reason: str                          # 'duration', 'signal', 'node-exit', 'node-crash'
+    returncodes: dict = field(default_factory=dict)
+    killed: list = field(default_factory=list)
+    failed_node: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """True when no node crashed and every node stopped cleanly when asked."""
+        return self.reason != 'node-crash' and not self.killed and all(
+            rc in CLEAN_EXIT_CODES for rc in self.returncodes.values())
+
+    @property
+    def exit_code(self) -> int:
+        """The launcher's exit status: 0 when ``ok``, else the crashed node's code or 1."""
+        if self.ok:
+            return 0
+        rc = self.returncodes.get(self.failed_node) if self.failed_node else None
+        return rc if isinstance(rc, int) and 0 < rc < 256 else 1
+
+
+class Launcher:
+    """Start node processes, stream their output, stop them together.
+
+    Parameters
+    ----------
+    out : text stream
+        Where prefixed node output goes (default ``sys.stdout``).
+    colour : bool or None
+        Colour the prefixes; ``None`` colours when ``out`` is a terminal.
+    kill_timeout : float
+        Seconds a node gets to exit after SIGINT before SIGKILL [s].
+    """
+
+    def __init__(self, out=None, colour: bool | None = None, kill_timeout: float = 8.0):
+        self._out = out or sys.stdout
+        self._colour = self._out.isatty() if colour is None else colour
+        self._kill_timeout = kill_timeout
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._stop_reason = 'signal'
+        self.procs: list[Proc] = []
+
+    # --- output ---------------------------------------------------------------------------
+    def _prefix(self, name: str, index: int, width: int) -> str:
+        text = f'[{name}]'.ljust(width + 2)
+        if self._colour:
+            return f'\033[{COLOURS[index % len(COLOURS)]}m{text}\033[0m '
+        return text + ' '
+
+    def emit(self, prefix: str, line: str) -> None:
+        """Write one line with its prefix, whole, however many threads print."""
+        with self._lock:
+            self._out.write(prefix + line.rstrip('\n') + '\n')
+            self._out.flush()
+
+    def _pump(self, proc: Proc, prefix: str) -> None:
+        for raw in iter(proc.popen.stdout.readline, b''):
+            self.emit(prefix, raw.decode('utf-8', 'replace'))
+        proc.popen.stdout.close()
+
+    # --- lifecycle ------------------------------------------------------------------------
+    def start(self, name: str, argv: list, env: dict, stop_last: bool = False) -> Proc:
+        """Start one node; its stdout and stderr are merged, prefixed and streamed."""
+        popen = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, start_new_session=True)
+        proc = Proc(name, list(argv), popen, stop_last)
+        self.procs.append(proc)
+        width = max(len(p.name) for p in self.procs)
+        proc.reader = threading.Thread(
+            target=self._pump, args=(proc, self._prefix(name, len(self.procs) - 1, width)),
+            daemon=True)
+        proc.reader.start()
+        self._say(f'started {name} (pid {popen.pid}): {" ".join(argv)}')
+        return proc
+
+    def request_stop(self, reason: str = 'signal') -> None:
+        """Ask :meth:`wait` to stop all nodes (safe from a signal handler)."""
+        self._stop_reason = reason
+        self._stop.set()
+
+    def install_signal_handlers(self) -> None:
+        """SIGINT and SIGTERM to the launcher stop the stack cleanly."""
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda signum, frame: self.request_stop('signal'))
+
+    def wait(self, duration: float | None = None, poll: float = 0.05) -> Outcome:
+        """Block until ``duration`` passes, a stop is requested or a node exits; then stop all.
+
+        A node exiting non-zero on its own is a crash (``node-crash``); exiting 0 on its own
+        ends the run normally (``node-exit``, e.g. a scenario that finished).
+        """
+        deadline = None if not duration else time.monotonic() + duration
+        reason, failed = None, None
+        while reason is None:
+            if self._stop.wait(poll):
+                reason = self._stop_reason
+            elif deadline is not None and time.monotonic() >= deadline:
+                reason = 'duration'
+            for p in self.procs:
+                rc = p.popen.poll()
+                if rc is not None and reason is None:
+                    failed = p.name
+                    reason = 'node-exit' if rc == 0 else 'node-crash'
+                    self._say(f'{p.name} exited with code {rc}; stopping the stack')
+        outcome = self.stop_all()
+        outcome.reason, outcome.failed_node = reason, failed
+        return outcome
+
+    def stop_all(self) -> Outcome:
+        """SIGINT every node (recorders last), SIGKILL what outlives the timeout; reap all."""
+        outcome = Outcome('signal')
+        first = [p for p in self.procs if not p.stop_last]
+        last = [p for p in self.procs if p.stop_last]
+        for group in (first, last):
+            for p in group:
+                if p.popen.poll() is None:
+                    p.expected_exit = True
+                    p.popen.send_signal(signal.SIGINT)
+            deadline = time.monotonic() + self._kill_timeout
+            for p in group:
+                try:
+                    p.popen.wait(max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    self._say(f'{p.name} did not exit {self._kill_timeout:.0f} s after SIGINT: SIGKILL')
+                    p.popen.kill()
+                    p.popen.wait()
+                    outcome.killed.append(p.name)
+        for p in self.procs:
+            if p.reader is not None:
+                p.reader.join(timeout=2.0)
+            outcome.returncodes[p.name] = p.popen.returncode
+        return outcome
+
+    def _say(self, text: str) -> None:
+        prefix = '\033[1m[launch]\033[0m ' if self._colour else '[launch] '
+        self.emit(prefix, text)

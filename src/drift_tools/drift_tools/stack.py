@@ -1,0 +1,159 @@
+"""The node graphs of ``config/stack.yaml`` and the command line and environment of each node.
+
+``stack.yaml`` has a ``graphs:`` section (graph name -> node name -> Python module) and, beside
+it, one ``<node name>: {ros__parameters: ...}`` section per node in ROS convention. Everything but
+``graphs:`` is written to one ROS parameter file that every node gets with ``--params-file``; each
+node is renamed to its graph name (``-r __node:=<name>``) so its section applies.
+"""
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from drift_control.params import ParamError, load_yaml
+
+CLOCK_MODES = ('realtime', 'lockstep')
+DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
+RECORDER_MODULE = 'drift_tools.nodes.recorder_node'
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of a graph: its ROS name and the module run with ``python -m``."""
+
+    name: str
+    module: str
+
+
+@dataclass(frozen=True)
+class StackConfig:
+    """The parsed ``stack.yaml``: graphs, per-node ROS parameters and who owns ``/clock``."""
+
+    graphs: dict            # graph name -> tuple of NodeSpec, in start order
+    node_params: dict       # node name -> {'ros__parameters': {...}} (ROS parameter-file layout)
+    clock_owner: str = 'sim'   # node that publishes /clock in lockstep mode
+
+    def graph(self, name: str, only: list[str] | None = None) -> list[NodeSpec]:
+        """The nodes of graph ``name``, optionally restricted to the names in ``only``."""
+        if name not in self.graphs:
+            raise ParamError(f'stack.graphs: no graph {name!r}; have {sorted(self.graphs)}')
+        nodes = list(self.graphs[name])
+        if only:
+            known = {n.name for n in nodes}
+            unknown = [n for n in only if n not in known]
+            if unknown:
+                raise ParamError(f'stack.graphs.{name}: no node(s) {unknown}; have {sorted(known)}')
+            nodes = [n for n in nodes if n.name in only]
+        return nodes
+
+
+def load_stack(path: str | os.PathLike) -> StackConfig:
+    """Read and validate ``stack.yaml``; every error names the key."""
+    raw = load_yaml(path)
+    graphs_raw = raw.get('graphs')
+    if not isinstance(graphs_raw, dict) or not graphs_raw:
+        raise ParamError(f'{path}: needs a non-empty "graphs:" mapping')
+    graphs = {}
+    for gname, nodes in graphs_raw.items():
+        if not isinstance(nodes, dict) or not nodes:
+            raise ParamError(f'stack.graphs.{gname}: expected a mapping node name -> module')
+        specs = []
+        for nname, module in nodes.items():
+            if not isinstance(module, str) or not module:
+                raise ParamError(f'stack.graphs.{gname}.{nname}: expected a module name')
+            specs.append(NodeSpec(str(nname), module))
+        graphs[str(gname)] = tuple(specs)
+    clock_owner = raw.get('clock_owner', 'sim')
+    if not isinstance(clock_owner, str):
+        raise ParamError(f'stack.clock_owner: expected a node name, got {clock_owner!r}')
+    node_params = {}
+    for key, section in raw.items():
+        if key in ('graphs', 'clock_owner'):
+            continue
+        if not isinstance(section, dict) or set(section) != {'ros__parameters'} \
+                or not isinstance(section['ros__parameters'], dict):
+            raise ParamError(f'stack.{key}: expected exactly "ros__parameters:" with a mapping')
+        node_params[str(key)] = section
+    return StackConfig(graphs, node_params, clock_owner)
+
+
+def write_params_file(cfg: StackConfig, path: str | os.PathLike) -> Path:
+    """Write the ROS parameter file (all per-node sections) every node is started with."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, 'w', encoding='utf-8') as fh:
+        yaml.safe_dump(cfg.node_params or {'/**': {'ros__parameters': {}}}, fh, sort_keys=False)
+    return path
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """What one launch shares between all nodes."""
+
+    params_file: Path
+    config_dir: Path
+    scenario: str = ''
+    clock: str = 'realtime'                # 'realtime' or 'lockstep'
+    bag_dir: Path | None = None            # recorder output; None = no recorder parameter
+    domain_id: int = 0
+    discovery_range: str = 'LOCALHOST'
+    python: str = sys.executable
+    extra_params: dict = field(default_factory=dict)   # name -> value, for every node
+
+    def __post_init__(self):
+        if self.clock not in CLOCK_MODES:
+            raise ParamError(f'clock: must be one of {list(CLOCK_MODES)}, got {self.clock!r}')
+        if self.discovery_range not in DISCOVERY_RANGES:
+            raise ParamError(f'discovery range: must be one of {list(DISCOVERY_RANGES)}, '
+                             f'got {self.discovery_range!r}')
+        if not 0 <= self.domain_id <= 232:
+            raise ParamError(f'ROS_DOMAIN_ID: must be in 0..232, got {self.domain_id}')
+
+
+def _param_value(value) -> str:
+    """A ``-p name:=value`` value as YAML, so strings stay strings (``''``, ``'1'``)."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (int, float)):
+        return repr(value)
+    return "'" + str(value).replace("'", "''") + "'"
+
+
+def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim') -> list[str]:
+    """The argv that starts ``spec`` as its own process.
+
+    In lockstep mode every node but the clock owner runs on ``/clock`` (use_sim_time); the owner
+    publishes it and is told so with ``clock_mode``.
+    """
+    owns_clock = spec.name == clock_owner
+    params = {
+        'use_sim_time': opts.clock == 'lockstep' and not owns_clock,
+        'config_dir': str(opts.config_dir),
+        'scenario': opts.scenario,
+    }
+    if owns_clock:
+        params['clock_mode'] = opts.clock
+    if spec.module == RECORDER_MODULE and opts.bag_dir is not None:
+        params['bag_dir'] = str(opts.bag_dir)
+    params.update(opts.extra_params)
+    argv = [opts.python, '-m', spec.module, '--ros-args', '-r', f'__node:={spec.name}',
+            '--params-file', str(opts.params_file)]
+    for name, value in params.items():
+        argv += ['-p', f'{name}:={_param_value(value)}']
+    return argv
+
+
+def node_env(opts: RunOptions, base: dict | None = None) -> dict:
+    """The child environment: ROS domain and discovery range always set, output unbuffered."""
+    env = dict(os.environ if base is None else base)
+    env['ROS_DOMAIN_ID'] = str(opts.domain_id)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = opts.discovery_range
+    env['PYTHONUNBUFFERED'] = '1'
+    env['RCUTILS_LOGGING_BUFFERED_STREAM'] = '0'
+    # The launcher prefixes the node name; keep ROS's own line short.
+    env.setdefault('RCUTILS_CONSOLE_OUTPUT_FORMAT', '[{severity}] [{time}]: {message}')
+    return env
