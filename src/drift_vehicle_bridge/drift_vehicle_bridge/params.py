@@ -1,0 +1,143 @@
+"""Bridge parameters: ``config/bridge.yaml`` loaded into frozen, validated dataclasses."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from drift_control.params import ParamError, config_dir, from_dict, load_yaml, require
+
+
+@dataclass(frozen=True)
+class BusParams:
+    """What ``can.Bus(**kwargs)`` gets: any python-can interface (socketcan, pcan, virtual, ...)."""
+
+    interface: str              # python-can backend name
+    channel: str                # 'can0', 'PCAN_USBBUS1', a virtual channel name, a multicast group
+    bitrate: int = 500000       # [bit/s]; ignored by virtual and udp_multicast
+    fd: bool = False            # CAN FD; the DBC's frames are classic 8-byte frames either way
+
+    def __post_init__(self):
+        require(bool(self.interface), 'bridge.bus.interface', 'must not be empty')
+        require(self.bitrate > 0, 'bridge.bus.bitrate', f'must be positive, got {self.bitrate}')
+
+    def kwargs(self) -> dict:
+        """Keyword arguments for ``can.Bus``."""
+        return {'interface': self.interface, 'channel': self.channel,
+                'bitrate': self.bitrate, 'fd': self.fd}
+
+
+@dataclass(frozen=True)
+class MonitorParams:
+    """Receive checks: E2E counter tolerance and per-frame timeouts."""
+
+    frame_timeout: float = 0.03         # a state frame older than this is stale [s] (3 cycles)
+    max_counter_delta: int = 2          # accepted alive-counter step; 2 tolerates one lost frame
+    timeouts: dict[str, float] = field(default_factory=dict)   # per-frame overrides [s]
+
+    def __post_init__(self):
+        require(self.frame_timeout > 0, 'bridge.monitor.frame_timeout', 'must be positive')
+        require(1 <= self.max_counter_delta <= 14, 'bridge.monitor.max_counter_delta',
+                f'must be in [1, 14], got {self.max_counter_delta}')
+        for name, t in self.timeouts.items():
+            require(t > 0, f'bridge.monitor.timeouts.{name}', 'must be positive')
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """Operating envelope: speed window and sideslip / yaw-rate magnitudes."""
+
+    V_min: float        # [m/s]
+    V_max: float        # [m/s]
+    beta_max: float     # |beta| limit [rad]
+    r_max: float        # |r| limit [rad/s]
+
+    def __post_init__(self):
+        require(0 <= self.V_min < self.V_max, 'envelope', 'needs 0 <= V_min < V_max')
+        require(self.beta_max > 0 and self.r_max > 0, 'envelope',
+                'beta_max and r_max must be positive')
+
+    def holds(self, V: float, beta: float, r: float) -> bool:
+        """True inside the envelope."""
+        return self.V_min <= V <= self.V_max and abs(beta) <= self.beta_max \
+            and abs(r) <= self.r_max
+
+
+@dataclass(frozen=True)
+class ModeParams:
+    """Arming, takeover and heartbeat rules of the mode manager."""
+
+    arm_envelope: Envelope              # state must be inside to arm
+    active_envelope: Envelope           # leaving it while ARMED/ACTIVE drops to OFF
+    steering_torque_takeover: float     # driver torque above this drops to OFF [Nm]
+    heartbeat_timeout: float            # DriftCommand older than this drops to OFF [s]
+    arm_timeout: float                  # ARMED without a command for this long drops to OFF [s]
+    allow_full: bool = True             # False: FULL commands are executed torque-only
+
+    def __post_init__(self):
+        require(self.steering_torque_takeover > 0, 'bridge.mode.steering_torque_takeover',
+                'must be positive')
+        require(self.heartbeat_timeout > 0, 'bridge.mode.heartbeat_timeout', 'must be positive')
+        require(self.arm_timeout > 0, 'bridge.mode.arm_timeout', 'must be positive')
+
+
+@dataclass(frozen=True)
+class LimitParams:
+    """Command clamps and rate limits, applied after the NMPC and before the bus."""
+
+    delta_max: float            # |road-wheel angle| [rad]
+    delta_rate_max: float       # |road-wheel rate| [rad/s]
+    torque_min: float           # rear axle torque [Nm]
+    torque_max: float           # [Nm]
+    torque_rate_max: float      # |d torque / dt| [Nm/s]
+
+    def __post_init__(self):
+        require(self.delta_max > 0, 'bridge.limits.delta_max', 'must be positive')
+        require(self.delta_rate_max > 0, 'bridge.limits.delta_rate_max', 'must be positive')
+        require(self.torque_min <= 0 <= self.torque_max, 'bridge.limits',
+                'needs torque_min <= 0 <= torque_max')
+        require(self.torque_rate_max > 0, 'bridge.limits.torque_rate_max', 'must be positive')
+
+
+@dataclass(frozen=True)
+class BridgeParams:
+    """Everything the bridge core needs; ``dbc`` is relative to the config directory."""
+
+    dbc: str
+    cycle_time: float                   # [s]
+    bus: BusParams
+    monitor: MonitorParams
+    mode: ModeParams
+    limits: LimitParams
+    tx_allow: tuple[str, ...]           # the only message names ever written
+
+    def __post_init__(self):
+        require(0 < self.cycle_time <= 0.1, 'bridge.cycle_time', 'must be in (0, 0.1] s')
+        require(len(self.tx_allow) > 0, 'bridge.tx_allow', 'must name at least one message')
+
+
+def load_bridge_params(cfg_dir: str | os.PathLike | None = None,
+                       overrides: dict | None = None) -> BridgeParams:
+    """Load ``bridge.yaml`` from ``cfg_dir`` (default: the project's config directory).
+
+    ``overrides`` is merged per section (``{'bus': {'channel': 'vcan0'}}``) before validation,
+    so a node parameter gets the same checks as the file.
+    """
+    cfg_dir = Path(cfg_dir) if cfg_dir else config_dir()
+    raw = load_yaml(cfg_dir / 'bridge.yaml')
+    for key, value in (overrides or {}).items():
+        if isinstance(value, dict) and isinstance(raw.get(key), dict):
+            raw[key] = {**raw[key], **value}
+        else:
+            raw[key] = value
+    return from_dict(BridgeParams, raw, 'bridge')
+
+
+def dbc_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> Path:
+    """Absolute path of the DBC named in the parameters."""
+    path = Path(params.dbc)
+    return path if path.is_absolute() else (Path(cfg_dir) if cfg_dir else config_dir()) / path
+
+
+__all__ = ['BridgeParams', 'BusParams', 'Envelope', 'LimitParams', 'ModeParams',
+           'MonitorParams', 'ParamError', 'dbc_path', 'load_bridge_params']
