@@ -31,9 +31,10 @@ THETA = IntEnum('THETA', 'K MU', start=0)
 NX, NU, NTHETA = len(X), len(U), len(THETA)
 N_VEHICLE = X.DELTA + 1   # V .. delta: the states the path does not influence
 
-# Regularisation widths. Each blend is exact to better than 1e-4 relative away from the corner
-# it smooths, and keeps the model finite and differentiable at V = 0 and at a locked wheel.
-_SMOOTH_W = 0.1          # width of the smooth max in speed [m/s]
+# Regularisation widths. Each blend differs from the hard corner by w exp(-distance / w), so it is
+# exact to machine precision a few widths away, and keeps the model finite and differentiable at
+# V = 0, at a locked wheel and with the car at the centre of the path's curvature.
+_SMOOTH_W = 0.01         # width of the smooth max in speed [m/s]
 _LOAD_FLOOR = 100.0      # a lifted wheel keeps this much vertical load [N]
 _FRENET_FLOOR = 0.1      # 1 - e_y K never goes below this (car far inside a tight curve) [-]
 FREE_ROLLING_TAU = 0.05  # time constant of the front wheel speed in 'free_rolling' mode [s]
@@ -55,8 +56,13 @@ class AxleForces(NamedTuple):
 
 
 def smooth_max(a, b, w=_SMOOTH_W):
-    """max(a, b), smoothed over a band of width ``w`` (the OCP needs a smooth right-hand side)."""
-    return 0.5 * (a + b + ca.sqrt((a - b) ** 2 + w * w))
+    """max(a, b) smoothed over a band of width ``w``: ``b + w softplus((a - b) / w)``.
+
+    Not a Python ``if``: the OCP needs a right-hand side with continuous derivatives. The softplus
+    is written in its overflow-free form ``max(z, 0) + log1p(exp(-|z|))``.
+    """
+    z = (a - b) / w
+    return b + w * (ca.fmax(z, 0.0) + ca.log1p(ca.exp(-ca.fabs(z))))
 
 
 def slips(x, p: VehicleParams):

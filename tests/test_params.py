@@ -1,0 +1,55 @@
+"""Parameter files: the shipped ones load; a wrong, missing or out-of-range key names itself."""
+import copy
+import re
+
+import pytest
+import yaml
+
+from drift_control.params import (ParamError, VehicleParams, config_dir, from_dict, load_surface,
+                                  load_vehicle, params_hash)
+
+
+@pytest.fixture()
+def raw():
+    with open(config_dir() / 'vehicle' / 'm3_competition.yaml') as fh:
+        return yaml.safe_load(fh)
+
+
+def test_shipped_vehicle_and_surfaces_load():
+    vp = load_vehicle()
+    assert vp.a + vp.b == pytest.approx(vp.L)
+    assert load_surface('dry').mu > load_surface('wet').mu
+
+
+@pytest.mark.parametrize('mutate, message', [
+    (lambda r: r.pop('I_z'), "missing key(s) ['I_z']"),
+    (lambda r: r.update(I_zz=1.0), "unknown key(s) ['I_zz']"),
+    (lambda r: r['rear_tyre'].update(pKx1='stiff'), 'rear_tyre.pKx1: expected a number'),
+    (lambda r: r['front_tyre']['lateral'].pop('B'), "front_tyre.lateral: missing key(s) ['B']"),
+    (lambda r: r.update(m=-5.0), 'vehicle.m: must be positive'),
+    (lambda r: r['limits'].update(T_R_min=9000.0), 'T_R_min must be below T_R_max'),
+    (lambda r: r.update(a=float('nan')), 'a: must be finite'),
+])
+def test_bad_vehicle_file_names_the_key(raw, mutate, message):
+    bad = copy.deepcopy(raw)
+    mutate(bad)
+    with pytest.raises(ParamError, match=re.escape(message)):
+        from_dict(VehicleParams, bad, 'vehicle')
+
+
+def test_missing_file_and_unknown_surface_are_clear_errors(tmp_path):
+    with pytest.raises(ParamError, match='not found'):
+        load_vehicle(tmp_path / 'nope.yaml')
+    (tmp_path / 'broken.yaml').write_text('m: [1, 2\n')
+    with pytest.raises(ParamError, match='not valid YAML'):
+        load_vehicle(tmp_path / 'broken.yaml')
+    with pytest.raises(ParamError, match="no surface 'ice'"):
+        load_surface('ice')
+
+
+def test_parameter_hash_tracks_values(raw):
+    a = from_dict(VehicleParams, raw, 'vehicle')
+    raw['m'] = raw['m'] + 1.0
+    b = from_dict(VehicleParams, raw, 'vehicle')
+    assert params_hash(a) == params_hash(load_vehicle())
+    assert params_hash(a) != params_hash(b)
