@@ -18,6 +18,8 @@ from drift_control.path import Path
 
 _log = logging.getLogger(__name__)
 
+_HEADING_LENGTH = 2.0   # [m] a course error of 1 rad weighs like 2 m in a global search
+
 
 class FrenetPoint(NamedTuple):
     """A pose in path coordinates.
@@ -90,19 +92,22 @@ class Frenet:
         """Forget the previous projection; the next call searches the whole path."""
         self._j = None
 
-    def _nearest(self, px, py, j_lo, j_hi):
+    def _nearest(self, px, py, j_lo, j_hi, course=None):
         p = self.path
         j = np.arange(j_lo, j_hi + 1)
         i = np.mod(j, p.n) if p.closed else j
         d2 = (p.x[i] - px) ** 2 + (p.y[i] - py) ** 2
+        cost = d2
+        if course is not None:   # global search: where branches cross, prefer the one driven
+            cost = d2 + _HEADING_LENGTH ** 2 * 2.0 * (1.0 - np.cos(course - p.psi[i]))
         self.points_examined += len(j)
-        k = int(np.argmin(d2))
+        k = int(np.argmin(cost))
         return int(j[k]), math.sqrt(float(d2[k])), k in (0, len(j) - 1)
 
-    def _global(self, px, py):
+    def _global(self, px, py, course):
         p = self.path
         self.global_searches += 1
-        j, dist, _ = self._nearest(px, py, 0, p.n - 1)
+        j, dist, _ = self._nearest(px, py, 0, p.n - 1, course)
         if p.closed and self._j is not None:   # keep the lap nearest to the previous one
             j += p.n * round((self._j - j) / p.n)
         return j, dist
@@ -121,15 +126,19 @@ class Frenet:
             j = j_new
         return None, math.inf
 
-    def project(self, px: float, py: float, yaw: float) -> FrenetPoint:
-        """Project the pose ``(px [m], py [m], yaw [rad])`` onto the path."""
+    def project(self, px: float, py: float, yaw: float, beta: float = 0.0) -> FrenetPoint:
+        """Project the pose ``(px [m], py [m], yaw [rad])`` onto the path.
+
+        ``beta`` [rad], the sideslip, only helps a global search tell crossing branches apart by
+        the course angle ``yaw + beta``.
+        """
         p = self.path
         self.points_examined = 0
         j, dist = (None, math.inf) if self._j is None else self._local(px, py)
         if j is None or dist > self._lost:
             if self._j is not None and not self.lost:
                 _log.warning('frenet: lost the path (%.1f m off), searching globally', dist)
-            j, dist = self._global(px, py)
+            j, dist = self._global(px, py, yaw + beta)
         self.lost = dist > self._lost
         self._j = j
         # the projection lies on the segment after or before the nearest sample

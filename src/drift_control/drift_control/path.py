@@ -212,9 +212,9 @@ def from_segments(segments, start=(0.0, 0.0, 0.0), ds: float = 0.1, closed: bool
     if closed:
         gap = math.hypot(x[-1] - x[0], y[-1] - y[0])
         turned = abs(math.remainder(psi[-1] - psi[0], 2.0 * math.pi))
-        if gap > _SEGMENT_CLOSURE_TOL or turned > 1e-6 or abs(K[-1] - K[0]) > 1e-9:
+        if gap > _SEGMENT_CLOSURE_TOL or turned > 1e-6:
             raise ParamError(f'path {name}: closed path does not close (gap {gap:.3g} m, '
-                             f'heading {turned:.3g} rad, curvature jump {abs(K[-1] - K[0]):.3g})')
+                             f'heading {turned:.3g} rad)')
         x, y, psi, K = x[:-1], y[:-1], psi[:-1], K[:-1]
     return Path(x, y, psi, K, ds, closed, sideslip or SideslipProfile(0.0), name)
 

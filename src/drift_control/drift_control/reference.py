@@ -145,7 +145,7 @@ class ReferenceSelector:
         p, last = self.p, self._last
         dt = state.stamp - last.stamp if last is not None else 0.0
         dt = dt if 0.0 < dt < 1.0 else 0.0     # no rate limit on the first call or after a gap
-        fp = self.frenet.project(state.x, state.y, state.yaw)
+        fp = self.frenet.project(state.x, state.y, state.yaw, state.beta)
         e_y_rate = state.V * math.sin(fp.heading_error + state.beta)
         k_max = 1.0 / p.radius_min
         correction = p.k_p * fp.e_y + p.k_d * e_y_rate + p.k_i * self._integral
