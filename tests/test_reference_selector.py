@@ -1,0 +1,224 @@
+"""ReferenceSelector: curvature correction sign, mirroring, clamping, continuity, never NaN."""
+import logging
+import math
+import os
+
+import numpy as np
+import pytest
+
+from drift_control import path as P
+from drift_control.params import ParamError, config_dir, from_dict
+from drift_control.reference import (ReferenceParams, ReferenceSelector, load_reference_params,
+                                     mirrored_reference)
+from drift_control.signals import Direction, Equilibrium, Validity, VehicleState
+
+R = 15.0
+A_LAT = 7.0                     # lateral acceleration of the stand-in map [m/s^2]
+BETA_RANGE = (0.0, math.radians(45.0))
+RADIUS_RANGE = (8.0, 50.0)
+
+
+def steady_circle_lookup(beta_abs, radius, direction):
+    """Analytic stand-in for EquilibriumMap.lookup: a steady circle V = sqrt(a_lat R), r = V/R."""
+    assert direction in (Direction.LEFT, Direction.RIGHT), 'the selector picks a side'
+    clamped = not (BETA_RANGE[0] <= beta_abs <= BETA_RANGE[1]
+                   and RADIUS_RANGE[0] <= radius <= RADIUS_RANGE[1])
+    beta_abs = min(max(beta_abs, BETA_RANGE[0]), BETA_RANGE[1])
+    radius = min(max(radius, RADIUS_RANGE[0]), RADIUS_RANGE[1])
+    d = int(direction)
+    V = math.sqrt(A_LAT * radius)
+    omega = V / 0.32
+    eq = Equilibrium(V=V, beta=-d * beta_abs, r=d * V / radius, omega_F=omega,
+                     omega_R=omega * (1.0 + 0.5 * beta_abs), delta=d * (2.7 / radius - beta_abs),
+                     T_R=400.0 + 2000.0 * beta_abs)
+    return eq, clamped
+
+
+def params(**over):
+    base = dict(k_p=0.01, k_d=0.012, radius_min=RADIUS_RANGE[0], radius_max=RADIUS_RANGE[1],
+                horizon_steps=10, horizon_dt=0.02)
+    base.update(over)
+    return ReferenceParams(**base)
+
+
+def drift_circle(direction=Direction.LEFT):
+    prof = P.SideslipProfile(math.radians(30.0))
+    return P.circle(R, direction, sideslip=prof)
+
+
+def state_on(path, s, e_y=0.0, t=0.0, V=10.0, beta=None, course_error=0.0, **kw):
+    """A car at arc length ``s`` [m], ``e_y`` [m] left of the path, velocity along the path."""
+    i = int(round(s / path.ds)) % path.n
+    psi = path.psi[i]
+    if beta is None:
+        beta = -math.copysign(math.radians(30.0), path.K[i]) if path.K[i] else 0.0
+    x, y = path.x[i] - e_y * math.sin(psi), path.y[i] + e_y * math.cos(psi)
+    yaw = psi + course_error - beta
+    return VehicleState(stamp=t, V=V, beta=beta, r=V * path.K[i], x=x, y=y, yaw=yaw, **kw)
+
+
+def mirror_state(st):
+    return VehicleState(stamp=st.stamp, V=st.V, beta=-st.beta, r=-st.r, x=st.x, y=-st.y,
+                        yaw=-st.yaw)
+
+
+@pytest.mark.parametrize('direction', [Direction.LEFT, Direction.RIGHT])
+def test_car_outside_the_circle_gets_a_tighter_curvature(direction):
+    path = drift_circle(direction)
+    outside = -int(direction) * 2.0            # left of a CCW circle is inside
+    refs = {}
+    for name, e_y in (('on', 0.0), ('outside', outside), ('inside', -outside)):
+        sel = ReferenceSelector(steady_circle_lookup, path, params())
+        refs[name] = sel.select(state_on(path, 30.0, e_y))
+    on, out, inn = refs['on'], refs['outside'], refs['inside']
+    assert on.curvature_cmd == pytest.approx(int(direction) / R)
+    assert abs(out.curvature_cmd) > abs(on.curvature_cmd) > abs(inn.curvature_cmd)
+    assert np.sign(out.curvature_cmd) == int(direction)
+    radius = lambda ref: ref.target.V / abs(ref.target.r)                       # noqa: E731
+    assert radius(out) < R < radius(inn)
+    assert out.direction == direction and out.target.r * int(direction) > 0
+
+
+def test_course_towards_the_path_damps_the_correction():
+    """de_y/dt = V sin(psi + beta) (Eq. 1): heading back to the path reduces the correction."""
+    path = drift_circle()
+    static = ReferenceSelector(steady_circle_lookup, path, params()).select(
+        state_on(path, 30.0, -2.0))
+    returning = ReferenceSelector(steady_circle_lookup, path, params()).select(
+        state_on(path, 30.0, -2.0, course_error=0.1))   # course turned left: towards the path
+    assert returning.curvature_cmd < static.curvature_cmd
+    assert returning.heading_error == pytest.approx(0.1 + math.radians(30.0), abs=1e-6)
+
+
+def test_kinematic_car_following_the_commanded_curvature_converges_to_the_path():
+    """A point mass whose course curvature is K_cmd starts 3 m outside: e_y decays, no NaN."""
+    path = drift_circle()
+    sel = ReferenceSelector(steady_circle_lookup, path, params())
+    st = state_on(path, 0.0, -3.0)
+    x, y, course, V, dt = st.x, st.y, st.yaw + st.beta, 10.0, 0.02
+    e_hist = []
+    for k in range(1500):                       # 30 s
+        beta = -math.radians(30.0)
+        ref = sel.select(VehicleState(stamp=k * dt, V=V, beta=beta, r=V / R, x=x, y=y,
+                                      yaw=course - beta))
+        assert ref.is_finite()
+        e_hist.append(ref.e_y)
+        turn = V * ref.curvature_cmd * dt          # exact arc: move along the chord
+        x += V * dt * math.cos(course + 0.5 * turn)
+        y += V * dt * math.sin(course + 0.5 * turn)
+        course += turn
+    e = np.abs(e_hist)
+    assert e[-250:].max() < 0.05, 'settles on the path'
+    assert max(e_hist) < 1.0, 'little overshoot to the inside'
+    assert ref.s == pytest.approx(30 * V, rel=0.05) and ref.s > path.length * 3
+
+
+def test_mirroring_the_path_mirrors_the_reference():
+    path = P.alternating(R, 10.0, sideslip=P.SideslipProfile(math.radians(30.0),
+                                                            math.radians(2.0), 20.0, 15.0))
+    a = ReferenceSelector(steady_circle_lookup, path, params())
+    b = ReferenceSelector(steady_circle_lookup, path.mirrored(), params())
+    rng = np.random.default_rng(1)
+    for k, s in enumerate(np.arange(0.0, path.length, 0.25)):
+        st = state_on(path, s, e_y=rng.normal(0, 0.5), t=0.02 * k)
+        ra, rb = a.select(st), b.select(mirror_state(st))
+        expect = mirrored_reference(ra)
+        assert rb.direction == expect.direction
+        assert rb.s == pytest.approx(expect.s, abs=1e-9)
+        for field in ('curvature', 'curvature_cmd', 'e_y', 'heading_error'):
+            assert getattr(rb, field) == pytest.approx(getattr(expect, field), abs=1e-9)
+        for eb, ee in zip((rb.target,) + rb.horizon, (expect.target,) + expect.horizon):
+            assert np.array(list(vars(eb).values())) == pytest.approx(
+                np.array(list(vars(ee).values())), abs=1e-9)
+
+
+def test_out_of_map_references_clamp_with_a_rate_limited_warning(caplog):
+    tight = P.circle(5.0, sideslip=P.SideslipProfile(math.radians(60.0)))   # both off the map
+    sel = ReferenceSelector(steady_circle_lookup, tight, params(warn_interval=60.0))
+    with caplog.at_level(logging.WARNING, logger='drift_control.reference'):
+        refs = [sel.select(state_on(tight, 0.1 * k, t=0.02 * k)) for k in range(100)]
+    assert all(r.clamped and r.is_finite() for r in refs)
+    assert abs(refs[-1].curvature_cmd) <= 1.0 / RADIUS_RANGE[0] + 1e-12
+    assert abs(refs[-1].target.beta) <= BETA_RANGE[1]
+    warnings = [r for r in caplog.records if 'clamped' in r.getMessage()]
+    assert len(warnings) == 1, 'warned once per interval, not once per call'
+
+
+def test_non_finite_or_poseless_state_keeps_the_last_reference(caplog):
+    path = drift_circle()
+    sel = ReferenceSelector(steady_circle_lookup, path, params())
+    assert sel.select(VehicleState(stamp=0.0, V=math.nan, beta=0.0, r=0.0)) is None
+    good = sel.select(state_on(path, 10.0, t=0.02))
+    bad = state_on(path, 10.5, t=0.04)
+    for broken in (VehicleState(**{**vars(bad), 'x': math.nan}),
+                   VehicleState(**{**vars(bad), 'beta': math.inf}),
+                   VehicleState(**{**vars(bad), 'validity': int(Validity.ALL & ~Validity.POSE)})):
+        assert sel.select(broken) is good
+    assert sel.rejected == 4
+    assert sel.select(bad).s == pytest.approx(10.5, abs=0.06)
+
+
+def test_lookup_returning_nan_never_reaches_the_reference():
+    path = drift_circle()
+    calls = {'n': 0}
+
+    def flaky(beta_abs, radius, direction):
+        calls['n'] += 1
+        eq, c = steady_circle_lookup(beta_abs, radius, direction)
+        return (Equilibrium(*(math.nan,) * 7), c) if calls['n'] > 10 else (eq, c)
+
+    sel = ReferenceSelector(flaky, path, params(horizon_steps=0))
+    refs = [sel.select(state_on(path, s, t=0.02 * k)) for k, s in enumerate(range(20))]
+    assert all(r.is_finite() for r in refs)
+    assert refs[-1] is refs[9]
+
+
+@pytest.mark.parametrize('transition', [10.0, 0.0])
+def test_left_right_transition_is_continuous(transition):
+    """Along the alternating manoeuvre at 50 Hz the reference moves a bounded amount per step."""
+    prof = P.SideslipProfile(math.radians(30.0), math.radians(2.0), 20.0, 15.0)
+    path = P.alternating(R, transition, sideslip=prof)
+    p = params()
+    sel = ReferenceSelector(steady_circle_lookup, path, p)
+    V, dt = 10.0, 0.02
+    refs = [sel.select(state_on(path, s, t=k * dt)) for k, s in
+            enumerate(np.arange(0.0, path.length - 1.0, V * dt))]
+    K = np.array([r.curvature_cmd for r in refs])
+    beta = np.array([r.target.beta for r in refs])
+    yaw_rate = np.array([r.target.r for r in refs])
+    assert np.abs(np.diff(K)).max() <= p.curvature_rate_max * dt + 1e-12
+    # d(beta)/dK of the blend is 2 beta / (2 / radius_max): bounded by the curvature rate
+    dbeta_max = max(p.beta_rate_max * dt,
+                    math.radians(30.0) * p.radius_max * p.curvature_rate_max * dt)
+    assert np.abs(np.diff(beta)).max() <= dbeta_max * 1.001
+    # the steepest part is the blend band: r goes from +V/R_max to -V/R_max over 2/R_max
+    V_max = steady_circle_lookup(0.5, p.radius_max, Direction.LEFT)[0].V
+    assert np.abs(np.diff(yaw_rate)).max() <= V_max * p.curvature_rate_max * dt * 1.001
+    dirs = [int(r.direction) for r in refs]
+    assert dirs[0] == 1 and dirs[-1] == -1 and 0 in dirs, 'left, through NONE, to right'
+    assert beta[0] == pytest.approx(-math.radians(2.0)) and beta[-1] == pytest.approx(
+        math.radians(30.0))
+
+
+def test_horizon_sees_the_transition_coming():
+    prof = P.SideslipProfile(math.radians(30.0))
+    path = P.alternating(R, 10.0, laps_first=1.0, sideslip=prof)
+    sel = ReferenceSelector(steady_circle_lookup, path, params(horizon_steps=25,
+                                                               horizon_dt=0.04))
+    s_flip = 2 * math.pi * R + 5.0
+    ref = sel.select(state_on(path, s_flip - 6.0, V=10.0))
+    assert len(ref.horizon) == 25 and ref.horizon[0] == ref.target
+    assert ref.target.r > 0 and ref.horizon[-1].r < 0, 'the last stages already drift right'
+    assert np.all(np.diff([e.r for e in ref.horizon]) <= 1e-12), 'monotone towards the right'
+
+
+def test_params_file_loads_and_bad_keys_are_named():
+    p = load_reference_params(os.path.join(config_dir(), 'reference.yaml'))
+    assert p.k_p > 0 and p.radius_min < p.radius_max
+    with pytest.raises(ParamError, match='k_pp'):
+        from_dict(ReferenceParams, {'k_pp': 1.0, 'k_d': 0.0, 'radius_min': 8.0,
+                                    'radius_max': 50.0}, 'reference')
+    with pytest.raises(ParamError, match='radius_min'):
+        params(radius_min=60.0)
+    with pytest.raises(ParamError, match='k_d'):
+        params(k_d=-1.0)
