@@ -1,0 +1,93 @@
+"""The vehicle bridge node: CAN gateway <-> vehicle/state, drift/command, diagnostics."""
+import time
+
+import can
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from drift_msgs.msg import DriftCommand, VehicleState
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_srvs.srv import SetBool
+
+from drift_control.params import config_dir
+from drift_vehicle_bridge.codec import Codec
+from drift_vehicle_bridge.gateway import Gateway
+from drift_vehicle_bridge.nodes import convert
+from drift_vehicle_bridge.params import dbc_path, load_bridge_params
+from drift_vehicle_bridge.replay import LogReplay
+
+
+class BridgeNode(Node):
+    """Runs the gateway cycle on a timer; a ``log_file`` replays a drive instead (read-only)."""
+
+    def __init__(self):
+        super().__init__('vehicle_bridge')
+        cfg = self.declare_parameter('config_dir', str(config_dir())).value
+        self.declare_parameter('scenario', '')
+        bus = {k: v for k in ('interface', 'channel', 'bitrate')
+               if (v := self.declare_parameter(k, 0 if k == 'bitrate' else '').value)}
+        log_file = self.declare_parameter('log_file', '').value
+        params = load_bridge_params(cfg, {'bus': bus})
+        codec = Codec.load(dbc_path(params, cfg))
+        self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params)
+        self._replay = LogReplay(log_file) if log_file else None
+        self._hw = log_file or f'{params.bus.interface}:{params.bus.channel}'
+        self._stats, self._diag_period = None, 1.0
+        self._state_pub = self.create_publisher(
+            VehicleState, 'vehicle/state', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.create_service(SetBool, 'bridge/arm', self._on_arm)
+        self.create_timer(params.cycle_time, self._on_tick)
+        self.create_timer(self._diag_period, self._on_diag)
+        self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}')
+
+    def _on_command(self, msg):
+        self._gw.set_command(convert.command_from_msg(msg), time.monotonic())
+
+    def _on_arm(self, request, response):
+        if request.data:
+            response.success, response.message = self._gw.request_arm(time.monotonic())
+        else:
+            self._gw.disarm()
+            response.success, response.message = True, 'disarmed'
+        self.get_logger().info(f'arm request {request.data}: {response.message}')
+        return response
+
+    def _on_tick(self):
+        now = time.monotonic()
+        for msg in self._replay.due(now) if self._replay else ():
+            self._gw.receive(msg, now)
+        state = self._gw.step(now)
+        if state is not None:
+            self._state_pub.publish(convert.state_to_msg(state, self.get_clock().now().to_msg()))
+
+    def _on_diag(self):
+        stats = self._gw.stats()
+        self._diag_pub.publish(convert.stats_to_diagnostics(
+            stats, self._stats, self._diag_period, self.get_clock().now().to_msg(), self._hw))
+        self._stats = stats
+
+    def close(self):
+        self._gw.shutdown()
+        if self._gw.bus is not None:
+            self._gw.bus.shutdown()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = BridgeNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

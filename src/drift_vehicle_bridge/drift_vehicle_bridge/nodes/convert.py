@@ -1,0 +1,59 @@
+"""drift_msgs / diagnostic_msgs <-> the bridge's core types; the only module importing both."""
+from __future__ import annotations
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from drift_msgs.msg import DriftCommand, VehicleState as VehicleStateMsg
+from std_msgs.msg import Header
+
+from drift_control.signals import Command, Mode, Validity, VehicleState
+from drift_vehicle_bridge.mode import REQUIRED
+
+
+def stamp_to_sec(stamp: Time) -> float:
+    return stamp.sec + 1e-9 * stamp.nanosec
+
+
+def state_to_msg(state: VehicleState, stamp: Time, frame_id: str = 'base_link') -> VehicleStateMsg:
+    """A VehicleState message stamped with ``stamp`` (the node's clock)."""
+    msg = VehicleStateMsg()
+    msg.header.stamp, msg.header.frame_id = stamp, frame_id
+    msg.v, msg.beta, msg.r = state.V, state.beta, state.r
+    msg.vx, msg.vy, msg.ax, msg.ay = state.vx, state.vy, state.ax, state.ay
+    msg.wheel_speeds = [float(w) for w in state.wheel_speeds]
+    msg.delta, msg.steering_torque = state.delta, state.steering_torque
+    msg.drive_torque, msg.brake_pedal = state.drive_torque, bool(state.brake_pedal)
+    msg.x, msg.y, msg.yaw = state.x, state.y, state.yaw
+    msg.validity = int(state.validity)
+    return msg
+
+
+def command_from_msg(msg: DriftCommand) -> Command:
+    """The core Command of a DriftCommand (an unknown mode reads as OFF)."""
+    mode = Mode(msg.mode) if msg.mode in Mode._value2member_map_ else Mode.OFF
+    return Command(stamp_to_sec(msg.header.stamp), msg.delta, msg.delta_rate, msg.drive_torque,
+                   mode)
+
+
+def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stamp: Time,
+                         hardware_id: str) -> DiagnosticArray:
+    """One DiagnosticStatus: mode, frame rates [Hz] over ``period`` [s], fault and tx counts."""
+    status = DiagnosticStatus(name='vehicle_bridge: CAN', hardware_id=hardware_id)
+    validity = int(stats['validity'])
+    if (validity & int(REQUIRED)) != int(REQUIRED):
+        status.level, status.message = DiagnosticStatus.ERROR, 'vehicle state missing or stale'
+    elif validity != int(Validity.ALL) or stats['faults']:
+        status.level, status.message = DiagnosticStatus.WARN, 'partial state or frame faults'
+    else:
+        status.level, status.message = DiagnosticStatus.OK, 'ok'
+    status.message += f"; mode {stats['mode']}"
+    values = {'mode': stats['mode'], 'drop_reason': stats['drop_reason'],
+              'validity': f'0x{validity:03x}', 'foreign_frames': stats['foreign']}
+    before = previous['rx'] if previous else {}
+    for name, count in stats['rx'].items():
+        values[f'rx_hz/{name}'] = f'{(count - before.get(name, 0)) / period:.1f}'
+    values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
+    values.update({f'tx/{k}': v for k, v in stats['tx'].items()})
+    values.update({f'error/{k}': v for k, v in stats['errors'].items()})
+    status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+    return DiagnosticArray(header=Header(stamp=stamp), status=[status])
