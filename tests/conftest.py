@@ -1,0 +1,53 @@
+"""Shared test fixtures: ROS isolation (own domain id, localhost discovery) and the repo paths.
+
+Tests marked ``ros`` are skipped, with the reason, where rclpy or the built drift_msgs is missing.
+"""
+import importlib.util
+import itertools
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TESTS = REPO / 'tests'
+PYTHON = sys.executable
+
+# Domain ids 10..29 belong to the drift_tools / drift_msgs tests; each ros test gets the next one.
+_TOOLS_DOMAINS = itertools.cycle(range(10, 30))
+
+
+def _ros_missing() -> str:
+    for module in ('rclpy', 'drift_msgs'):
+        if importlib.util.find_spec(module) is None:
+            return f'{module} not importable'
+    return ''
+
+
+def pytest_collection_modifyitems(config, items):
+    reason = _ros_missing()
+    if not reason:
+        return
+    skip = pytest.mark.skip(reason=f'ros test: {reason}')
+    for item in items:
+        if 'ros' in item.keywords:
+            item.add_marker(skip)
+
+
+@pytest.fixture
+def tools_domain_id(monkeypatch):
+    """A ROS domain id from 10..29 for this test, set (with LOCALHOST discovery) in os.environ."""
+    domain = next(_TOOLS_DOMAINS)
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    return domain
+
+
+@pytest.fixture
+def node_env(tools_domain_id):
+    """Environment for child node processes: the test domain, and tests/ importable."""
+    env = dict(os.environ)
+    env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(TESTS), env.get('PYTHONPATH', '')]))
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
