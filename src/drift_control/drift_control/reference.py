@@ -49,6 +49,7 @@ class ReferenceParams:
     window_forward: float = 15.0  # ... and ahead of it [m]
     lost_distance: float = 5.0    # beyond this distance from the path search globally [m]
     warn_interval: float = 2.0    # minimum time between two identical warnings [s]
+    period: float = 0.02          # publishing period of the reference node [s]
 
     def __post_init__(self):
         require(0.0 < self.radius_min < self.radius_max, 'reference.radius_min',
@@ -57,6 +58,7 @@ class ReferenceParams:
             value = getattr(self, f.name)
             require(value >= 0.0, f'reference.{f.name}', f'must not be negative, got {value}')
         require(self.horizon_dt > 0.0, 'reference.horizon_dt', 'must be positive')
+        require(self.period > 0.0, 'reference.period', 'must be positive')
 
 
 def load_reference_params(path) -> ReferenceParams:
@@ -143,8 +145,9 @@ class ReferenceSelector:
                                'last reference (%d refused)', self.rejected)
             return self._last
         p, last = self.p, self._last
-        dt = state.stamp - last.stamp if last is not None else 0.0
-        dt = dt if 0.0 < dt < 1.0 else 0.0     # no rate limit on the first call or after a gap
+        dt = state.stamp - last.stamp if last is not None else -1.0
+        limited = 0.0 <= dt < 1.0    # no rate limit on the first call, after a gap or a reset
+        dt = max(dt, 0.0) if limited else 0.0
         fp = self.frenet.project(state.x, state.y, state.yaw, state.beta)
         e_y_rate = state.V * math.sin(fp.heading_error + state.beta)
         k_max = 1.0 / p.radius_min
@@ -157,10 +160,10 @@ class ReferenceSelector:
         if not (saturated and fp.e_y * self._integral > 0.0):
             self._integral = max(-p.integral_limit,
                                  min(p.integral_limit, self._integral + fp.e_y * dt))
-        if last is not None and dt > 0.0:
+        if limited:
             K_cmd = _limit(last.curvature_cmd, K_cmd, p.curvature_rate_max * dt)
         beta_abs = float(self.path.beta_at(fp.s))
-        if self._beta_ref is not None and dt > 0.0:
+        if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
         target, direction, clamped = self.equilibrium(beta_abs, K_cmd)

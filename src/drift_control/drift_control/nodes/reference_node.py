@@ -1,0 +1,105 @@
+"""Reference node: vehicle/state -> ReferenceSelector -> drift/reference at a fixed rate."""
+import os
+import sys
+
+import rclpy
+from drift_msgs.msg import DriftReference, VehicleState
+from nav_msgs.msg import Path as PathMsg
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+from drift_control.nodes import convert
+from drift_control.params import ParamError, config_dir, load_yaml
+from drift_control.path import load_path
+from drift_control.reference import ReferenceSelector, load_reference_params
+
+
+def load_map_lookup(cfg: str, scenario: str, map_file: str):
+    """``EquilibriumMap.lookup`` of ``map_file`` or the scenario's; never a made-up map.
+
+    A relative file name is taken from the checkout root (the parent of ``config_dir``).
+    """
+    if not map_file and scenario:
+        map_file = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')).get('map_file', '')
+    map_file = os.path.join(os.path.dirname(os.path.abspath(cfg)), map_file) if map_file else ''
+    try:
+        from drift_control.eqmap import load_map
+    except ImportError as err:
+        raise ParamError(f'drift_control.eqmap is not available ({err}): no equilibrium map')
+    if not map_file or not os.path.isfile(map_file):
+        raise ParamError(f'map_file {map_file!r}: equilibrium map not found')
+    return load_map(map_file).lookup
+
+
+def load_path_for(cfg: str, scenario: str, path_file: str):
+    """The path from ``path_file``, else the scenario's ``path:`` (a mapping or a paths/ name)."""
+    if not path_file:
+        if not scenario:
+            raise ParamError('give a scenario (with a path: section) or a path_file')
+        section = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')).get('path')
+        if isinstance(section, dict):
+            return load_path(section, f'scenarios/{scenario}.yaml: path')
+        if not isinstance(section, str):
+            raise ParamError(f'scenarios/{scenario}.yaml: path: missing')
+        path_file = os.path.join(cfg, 'paths', section if section.endswith('.yaml')
+                                 else f'{section}.yaml')
+    raw = load_yaml(path_file)
+    return load_path(raw.get('path', raw), os.path.basename(path_file))
+
+
+class ReferenceNode(Node):
+    """Publishes the equilibrium reference for the latest vehicle state, and the path."""
+
+    def __init__(self):
+        super().__init__('reference')
+        cfg = self.declare_parameter('config_dir', str(config_dir())).value
+        scenario = self.declare_parameter('scenario', '').value
+        path_file = self.declare_parameter('path_file', '').value
+        map_file = self.declare_parameter('map_file', '').value
+        params = load_reference_params(os.path.join(cfg, 'reference.yaml'))
+        path = load_path_for(cfg, scenario, path_file)
+        self._selector = ReferenceSelector(load_map_lookup(cfg, scenario, map_file), path, params)
+        self._state, self._fresh = None, False
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
+        self.create_publisher(PathMsg, 'drift/path', latched).publish(
+            convert.path_to_msg(path, self.get_clock().now()))
+        self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
+                                 qos_profile_sensor_data)
+        self.create_timer(params.period, self._on_tick)
+        self.get_logger().info(f'path {path.name}: {path.length:.1f} m, map {map_file}')
+
+    def _on_state(self, msg):
+        self._state, self._fresh = convert.state_from_msg(msg), True
+
+    def _on_tick(self):
+        if not self._fresh:   # publish only for new states: a stale state must look stale
+            return
+        self._fresh = False
+        ref = self._selector.select(self._state)
+        if ref is not None:
+            self._ref_pub.publish(convert.reference_to_msg(ref))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node, code = None, 0
+    try:
+        node = ReferenceNode()
+        rclpy.spin(node)
+    except ParamError as err:
+        rclpy.logging.get_logger('reference').error(str(err))
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
