@@ -175,6 +175,8 @@ def test_takeover_or_loss_drops_to_off_within_one_cycle_and_stays_off(rig, event
     for _ in range(int(round(timeout / DT)) + 4):
         cycles.append(rig.cycle(**kwargs))
     first_off = next(i for i, (mode, _, _) in enumerate(cycles) if mode == BridgeMode.OFF)
+    if timeout == 0.0:
+        assert first_off == 0, f'{event}: the very cycle that sees it goes OFF'
     t_off = t_event + (first_off + 1) * DT
     assert t_off - t_event <= timeout + DT + 1e-9, f'{event}: OFF after {t_off - t_event:.3f} s'
     for mode, applied, written in cycles[first_off:]:
