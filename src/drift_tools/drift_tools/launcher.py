@@ -91,9 +91,10 @@ class Launcher:
             self._out.write(prefix + line.rstrip('\n') + '\n')
             self._out.flush()
 
-    def _pump(self, proc: Proc, prefix: str) -> None:
+    def _pump(self, proc: Proc, index: int) -> None:
         for raw in iter(proc.popen.stdout.readline, b''):
-            self.emit(prefix, raw.decode('utf-8', 'replace'))
+            width = max(len(p.name) for p in self.procs)    # all names known by the first line
+            self.emit(self._prefix(proc.name, index, width), raw.decode('utf-8', 'replace'))
         proc.popen.stdout.close()
 
     # --- lifecycle ------------------------------------------------------------------------
@@ -103,10 +104,8 @@ class Launcher:
                                  stdin=subprocess.DEVNULL, start_new_session=True)
         proc = Proc(name, list(argv), popen, stop_last)
         self.procs.append(proc)
-        width = max(len(p.name) for p in self.procs)
-        proc.reader = threading.Thread(
-            target=self._pump, args=(proc, self._prefix(name, len(self.procs) - 1, width)),
-            daemon=True)
+        proc.reader = threading.Thread(target=self._pump, args=(proc, len(self.procs) - 1),
+                                       daemon=True)
         proc.reader.start()
         self._say(f'started {name} (pid {popen.pid}): {" ".join(argv)}')
         return proc

@@ -1,0 +1,159 @@
+"""Launcher and stack config in-process, with plain Python children (no ROS needed)."""
+import ast
+import io
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from conftest import REPO
+from drift_control.params import ParamError
+from drift_tools.launcher import Launcher
+from drift_tools.stack import (RECORDER_MODULE, NodeSpec, RunOptions, load_stack, node_command,
+                               node_env, write_params_file)
+
+CHILD = r'''
+import signal, sys, time
+mode, delay = sys.argv[1], float(sys.argv[2])
+print("up", flush=True)
+if mode == "ignore":
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+if mode in ("crash", "finish"):
+    time.sleep(delay)
+    print("leaving", flush=True)
+    sys.exit(7 if mode == "crash" else 0)
+try:
+    while True:
+        time.sleep(0.02)
+except KeyboardInterrupt:
+    time.sleep(delay)
+    print("got SIGINT", flush=True)
+'''
+
+
+def child(mode, delay=0.0):
+    return [sys.executable, '-c', CHILD, mode, str(delay)]
+
+
+def run(children, duration=None, kill_timeout=5.0, stop_after=None):
+    out = io.StringIO()
+    launcher = Launcher(out=out, colour=False, kill_timeout=kill_timeout)
+    for name, argv, last in children:
+        launcher.start(name, argv, env=None, stop_last=last)
+    if stop_after is not None:
+        threading.Timer(stop_after, launcher.request_stop).start()
+    t0 = time.monotonic()
+    outcome = launcher.wait(duration)
+    return outcome, time.monotonic() - t0, out.getvalue().splitlines()
+
+
+def test_duration_is_respected_and_nodes_stop_cleanly():
+    outcome, elapsed, lines = run([('a', child('run'), False), ('bb', child('run'), False)],
+                                  duration=1.0)
+    assert outcome.reason == 'duration' and outcome.ok and outcome.exit_code == 0
+    assert 1.0 <= elapsed < 4.0
+    assert '[a]  got SIGINT' in lines and '[bb] got SIGINT' in lines   # prefixed, aligned
+    assert outcome.returncodes == {'a': 0, 'bb': 0}
+
+
+def test_a_crashing_node_stops_the_rest_and_fails_the_run():
+    outcome, elapsed, lines = run([('ok', child('run'), False), ('bad', child('crash', 0.3), False)],
+                                  duration=30.0)
+    assert outcome.reason == 'node-crash' and outcome.failed_node == 'bad'
+    assert not outcome.ok and outcome.exit_code == 7
+    assert elapsed < 5.0 and '[ok]  got SIGINT' in lines
+
+
+def test_a_node_finishing_normally_ends_the_run_ok():
+    outcome, _, _ = run([('ok', child('run'), False), ('done', child('finish', 0.3), False)],
+                        duration=30.0)
+    assert outcome.reason == 'node-exit' and outcome.ok and outcome.exit_code == 0
+
+
+def test_stop_request_is_forwarded_recorder_last():
+    outcome, elapsed, lines = run([('rec', child('run'), True), ('node', child('run', 0.5), False)],
+                                  stop_after=0.8)
+    assert outcome.reason == 'signal' and outcome.ok and elapsed < 4.0
+    got = [line for line in lines if line.startswith('[') and line.endswith('got SIGINT')]
+    assert got == ['[node] got SIGINT', '[rec]  got SIGINT'], 'the recorder must stop after the rest'
+
+
+def test_a_node_ignoring_sigint_is_killed_and_fails_the_run():
+    outcome, elapsed, lines = run([('stubborn', child('ignore'), False)], duration=0.5,
+                                  kill_timeout=0.7)
+    assert outcome.killed == ['stubborn'] and not outcome.ok and outcome.exit_code == 1
+    assert 1.1 <= elapsed < 4.0
+    assert any('SIGKILL' in line for line in lines)
+
+
+# --- stack.yaml -------------------------------------------------------------------------------
+
+def test_project_stack_graphs():
+    cfg = load_stack(REPO / 'config' / 'stack.yaml')
+    assert [n.module for n in cfg.graph('sim')] == [
+        'drift_sim.nodes.sim_node', 'drift_control.nodes.reference_node',
+        'drift_control.nodes.nmpc_node', RECORDER_MODULE]
+    assert [n.name for n in cfg.graph('vehicle')] == ['bridge', 'reference', 'nmpc', 'recorder']
+    assert [n.name for n in cfg.graph('sim', ['nmpc', 'sim'])] == ['sim', 'nmpc']
+    with pytest.raises(ParamError, match='graphs: no graph .car.'):
+        cfg.graph('car')
+    with pytest.raises(ParamError, match=r"no node\(s\) \['planner'\]"):
+        cfg.graph('sim', ['planner'])
+
+
+@pytest.mark.parametrize('text, key', [
+    ('nodes: {}', 'graphs'),
+    ('graphs: {sim: {sim: 3}}', 'stack.graphs.sim.sim'),
+    ('graphs: {sim: {sim: m}}\nsim: {rate: 1}', 'stack.sim'),
+])
+def test_stack_errors_name_the_key(tmp_path, text, key):
+    (tmp_path / 'stack.yaml').write_text(text)
+    with pytest.raises(ParamError, match=key):
+        load_stack(tmp_path / 'stack.yaml')
+
+
+def test_params_file_is_the_ros_layout_without_graphs(tmp_path):
+    cfg = load_stack(REPO / 'config' / 'stack.yaml')
+    raw = yaml.safe_load(write_params_file(cfg, tmp_path / 'p.yaml').read_text())
+    assert 'graphs' not in raw and 'clock_owner' not in raw
+    assert all(set(section) == {'ros__parameters'} for section in raw.values())
+
+
+def _params(argv):
+    return dict(argv[i + 1].split(':=', 1) for i, a in enumerate(argv) if a == '-p')
+
+
+@pytest.mark.parametrize('clock', ['realtime', 'lockstep'])
+def test_node_command_and_clock_ownership(tmp_path, clock):
+    opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path, scenario="it's",
+                      clock=clock, bag_dir=tmp_path / 'bag', python='py')
+    sim = node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'), opts, clock_owner='sim')
+    rec = node_command(NodeSpec('recorder', RECORDER_MODULE), opts, clock_owner='sim')
+    assert sim[:5] == ['py', '-m', 'drift_sim.nodes.sim_node', '--ros-args', '-r']
+    assert '__node:=sim' in sim and sim[sim.index('--params-file') + 1] == str(tmp_path / 'p.yaml')
+    p_sim, p_rec = _params(sim), _params(rec)
+    assert p_sim['use_sim_time'] == 'false' and p_sim['clock_mode'] == f"'{clock}'"
+    assert p_rec['use_sim_time'] == ('true' if clock == 'lockstep' else 'false')
+    assert yaml.safe_load(p_rec['scenario']) == "it's"
+    assert yaml.safe_load(p_rec['bag_dir']) == str(tmp_path / 'bag') and 'bag_dir' not in p_sim
+
+
+def test_child_env_always_sets_domain_and_discovery(tmp_path):
+    opts = RunOptions(params_file=tmp_path, config_dir=tmp_path, domain_id=17)
+    env = node_env(opts, base={'ROS_DOMAIN_ID': '3', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'})
+    assert env['ROS_DOMAIN_ID'] == '17' and env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+    with pytest.raises(ParamError, match='clock'):
+        RunOptions(params_file=tmp_path, config_dir=tmp_path, clock='fast')
+
+
+def test_core_modules_do_not_import_rclpy():
+    core = [p for p in (REPO / 'src' / 'drift_tools' / 'drift_tools').glob('*.py')]
+    assert core, 'drift_tools has no modules?'
+    for path in core:
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ''] if isinstance(node, ast.ImportFrom) else []
+            assert not any(n.split('.')[0] == 'rclpy' for n in names), f'{path.name} imports rclpy'
