@@ -222,3 +222,53 @@ def test_params_file_loads_and_bad_keys_are_named():
         params(radius_min=60.0)
     with pytest.raises(ParamError, match='k_d'):
         params(k_d=-1.0)
+
+
+def _drive(sel, path, s0, e0, V, seconds, dt=0.02):
+    """Kinematic car whose course curvature is K_cmd (exact arcs); returns the e_y history."""
+    st = state_on(path, s0, e0)
+    x, y, course = st.x, st.y, st.yaw + st.beta
+    e_hist = []
+    for k in range(int(seconds / dt)):
+        beta = -math.copysign(0.5, path.curvature_at(s0 + V * k * dt) or 1.0)
+        ref = sel.select(VehicleState(stamp=k * dt, V=V, beta=beta, r=0.0, x=x, y=y,
+                                      yaw=course - beta))
+        assert ref is not None and ref.is_finite()
+        e_hist.append(ref.e_y)
+        turn = V * ref.curvature_cmd * dt
+        x += V * dt * math.cos(course + 0.5 * turn)
+        y += V * dt * math.sin(course + 0.5 * turn)
+        course += turn
+    return np.array(e_hist)
+
+
+@pytest.mark.parametrize('V', [8.0, 12.0])
+def test_kinematic_car_keeps_the_figure8_through_its_transitions(V):
+    path = P.figure8(R, 10.0, sideslip=P.SideslipProfile(math.radians(30.0)))
+    sel = ReferenceSelector(steady_circle_lookup, path, params())
+    e = _drive(sel, path, 20.0, -2.0, V, 40.0)
+    assert np.abs(e[500:]).max() < 0.15, 'left<->right transitions cost < 15 cm'
+    assert sel.frenet.global_searches == 1
+
+
+def test_integral_action_does_not_wind_up_while_saturated():
+    path = drift_circle()
+    p = params(k_i=0.01, integral_limit=100.0, correction_limit=0.01)
+    sel = ReferenceSelector(steady_circle_lookup, path, p)
+    for k in range(500):                                   # 10 s held 4 m outside: saturated
+        ref = sel.select(state_on(path, 0.2 * k, -4.0, t=0.02 * k))
+        assert ref.curvature_cmd == pytest.approx(1 / R + p.correction_limit)
+    back = [sel.select(state_on(path, 100.0 + 0.2 * k, 0.0, t=10.0 + 0.02 * k))
+            for k in range(10)]
+    # without anti-windup int e_y dt = -40 m s and k_i * 40 = 0.4 1/m would hold the limit
+    assert back[-1].curvature_cmd == pytest.approx(1 / R, abs=2e-3)
+
+
+def test_start_hint_resolves_an_overlapping_open_path():
+    """The alternating path's second circle passes by its start: a hint picks the first pass."""
+    path = P.alternating(R, 10.0, laps_second=3.0)
+    st = state_on(path, 1.0, -3.0)
+    sel = ReferenceSelector(steady_circle_lookup, path, params())
+    assert sel.select(st).s > 100.0, 'globally the right circle is nearer'
+    sel.reset(s_hint=0.0)
+    assert sel.select(st).s == pytest.approx(1.0, abs=0.06)

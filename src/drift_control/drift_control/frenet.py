@@ -88,9 +88,14 @@ class Frenet:
         self.global_searches = 0
         self.lost = False               # the last call was further than lost_distance
 
-    def reset(self) -> None:
-        """Forget the previous projection; the next call searches the whole path."""
-        self._j = None
+    def reset(self, s_hint: float | None = None) -> None:
+        """Forget the previous projection.
+
+        The next call searches the whole path, or, given ``s_hint`` [m], the window around it
+        (where an open path overlaps itself, e.g. at the start of the alternating manoeuvre).
+        """
+        self._j = None if s_hint is None else int(round(s_hint / self.path.ds))
+        self.lost = False
 
     def _nearest(self, px, py, j_lo, j_hi, course=None):
         p = self.path

@@ -114,9 +114,10 @@ class ReferenceSelector:
         self._beta_ref = None
         self.rejected = 0      # states refused as non-finite or without a pose
 
-    def reset(self) -> None:
-        """Forget the previous cycle (new run): global search, zero integrator, no rate limits."""
-        self.frenet.reset()
+    def reset(self, s_hint: float | None = None) -> None:
+        """Forget the previous cycle (new run): zero integrator, no rate limits, and a global
+        search for the path position (or a local one around ``s_hint`` [m])."""
+        self.frenet.reset(s_hint)
         self._last, self._integral, self._beta_ref = None, 0.0, None
 
     def equilibrium(self, beta_abs: float, K_cmd: float) -> tuple[Equilibrium, Direction, bool]:
