@@ -21,8 +21,8 @@ from drift_vehicle_bridge.replay import LogReplay
 class BridgeNode(Node):
     """Runs the gateway cycle on a timer; a ``log_file`` replays a drive instead (read-only)."""
 
-    def __init__(self):
-        super().__init__('vehicle_bridge')
+    def __init__(self, **kwargs):
+        super().__init__('vehicle_bridge', **kwargs)
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         self.declare_parameter('scenario', '')
         bus = {k: v for k in ('interface', 'channel', 'bitrate')
