@@ -1,0 +1,60 @@
+"""scripts/run_stack.py on graphs of test nodes: duration, a crashing node, SIGINT, the bag."""
+import signal
+import subprocess
+import time
+
+import pytest
+
+from conftest import PYTHON, REPO, TESTS
+from drift_tools.bag import read_bag
+
+pytestmark = pytest.mark.ros
+
+STACK = TESTS / 'nodes_for_tests' / 'stack.yaml'
+
+
+def run_stack(env, *args):
+    return subprocess.Popen([PYTHON, str(REPO / 'scripts' / 'run_stack.py'), '--stack', str(STACK),
+                             '--kill-timeout', '5', *args],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_duration_bag_and_summary(node_env, tmp_path):
+    t0 = time.monotonic()
+    proc = run_stack(node_env, '--graph', 'rec', '--duration', '6', '--bag', str(tmp_path / 'b'))
+    out, _ = proc.communicate(timeout=60)
+    elapsed = time.monotonic() - t0
+    assert proc.returncode == 0, out
+    assert 6.0 <= elapsed < 20.0, f'took {elapsed:.1f} s for --duration 6'
+    assert 'stopped (duration)' in out and '[talker]   published 200' in out, out
+    # count=200 reached the talker through the generated parameter file
+    commands = read_bag(tmp_path / 'b', ['/drift/command'])['/drift/command']
+    assert len(commands) == 200
+    summary = [line.split() for line in out.splitlines() if line.strip().startswith('/drift/command')]
+    assert summary and summary[-1][1] == '200', out
+
+
+def test_a_crashing_node_fails_the_run(node_env):
+    t0 = time.monotonic()
+    proc = run_stack(node_env, '--graph', 'crash', '--duration', '60')
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 3, out
+    assert time.monotonic() - t0 < 20.0
+    assert 'crasher exited with code 3' in out and '[talker]  published' in out, out
+
+
+def test_sigint_is_forwarded_and_the_bag_closed(node_env, tmp_path):
+    proc = run_stack(node_env, '--graph', 'rec', '--bag', str(tmp_path / 'b'), '--no-summary')
+    lines = []
+    for line in proc.stdout:             # wait until the recorder has the talker's topics
+        lines.append(line)
+        if 'recording /vehicle/state' in line:
+            break
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    out = ''.join(lines) + out
+    assert proc.returncode == 0, out
+    assert 'stopped (signal); exit codes: recorder=0, talker=0' in out, out
+    got = read_bag(tmp_path / 'b', backend='rosbags')   # needs the footer a clean stop writes
+    assert len(got['/drift/command']) > 0
