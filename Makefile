@@ -4,7 +4,7 @@ PY       := .venv/bin/python
 GRAPH    ?= sim
 DURATION ?= 20
 SCENARIO ?=
-RUN_DIR  ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
+BAG      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)/bag
 
 .PHONY: setup run test
 
@@ -12,7 +12,7 @@ setup:
 	@scripts/setup.sh
 
 run: setup
-	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) --bag $(RUN_DIR) \
+	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) --bag $(BAG) \
 		$(if $(SCENARIO),--scenario $(SCENARIO)) $(ARGS)
 
 test:

@@ -8,6 +8,7 @@ Ctrl-C (or SIGTERM) stops every node cleanly. Exits non-zero if a node crashes o
 With --bag, a summary read back from the bag is printed at the end.
 """
 import argparse
+import importlib.util
 import os
 import sys
 import tempfile
@@ -41,6 +42,13 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
+def _importable(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ImportError:          # a parent package is missing
+        return False
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     cfg_dir = (args.config_dir or config_dir()).resolve()
@@ -64,6 +72,10 @@ def main(argv=None) -> int:
         return 2
     if not nodes:
         print('run_stack: no nodes to start', file=sys.stderr)
+        return 2
+    missing = [f'{n.name} ({n.module})' for n in nodes if not _importable(n.module)]
+    if missing:
+        print(f'run_stack: node module(s) not found: {", ".join(missing)}', file=sys.stderr)
         return 2
 
     launcher = Launcher(kill_timeout=args.kill_timeout)
