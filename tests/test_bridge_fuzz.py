@@ -1,4 +1,4 @@
-"""Vehicle bridge fuzz: >= 10,000 mutated and random frames; nothing escapes, every bad frame counts."""
+"""Vehicle bridge fuzz: >= 10,000 mutated and random frames; nothing escapes, each bad one counts."""
 import random
 from collections import Counter
 
@@ -108,7 +108,7 @@ def test_labelled_mutations_are_each_rejected_and_counted(codec):
 
 
 class ReferenceReceiver:
-    """An independent E2E receiver written from the DBC's comment, to judge the bridge's checker."""
+    """An independent E2E receiver, written from the DBC's comment, to judge the checker."""
 
     def __init__(self, codec):
         self.db = codec.db
@@ -169,7 +169,7 @@ def test_random_frames_never_escape_and_every_rejection_is_counted(codec):
 
 
 def test_gateway_survives_a_babbling_bus(codec):
-    """10,000 random frames through a real (virtual) bus into the gateway: no exception, counted."""
+    """10,000 random frames through a (virtual) bus into the gateway: no exception, counted."""
     rng = random.Random(11)
     params = load_bridge_params()
     with can.Bus('fuzz', interface='virtual') as noise, \

@@ -25,7 +25,8 @@ def _netns_reason() -> str | None:
     probe = subprocess.run(['unshare', '-n', 'ip', 'link', 'set', 'lo', 'up'],
                            capture_output=True, text=True, timeout=10)
     if probe.returncode != 0:
-        return f'cannot create a network namespace (needs root/CAP_SYS_ADMIN): {probe.stderr.strip()}'
+        return ('cannot create a network namespace (needs root/CAP_SYS_ADMIN): '
+                f'{probe.stderr.strip()}')
     return None
 
 

@@ -7,7 +7,6 @@ remaining payload bytes, and a 4-bit ``AliveCounter`` counts transmissions.
 """
 from __future__ import annotations
 
-import logging
 import math
 import os
 from dataclasses import dataclass
@@ -19,8 +18,6 @@ from crccheck.crc import Crc8SaeJ1850
 
 from drift_control.signals import Command, Mode, Validity, VehicleState
 from drift_vehicle_bridge.mode import BridgeMode
-
-log = logging.getLogger(__name__)
 
 CRC_SIGNAL = 'CRC'
 COUNTER_SIGNAL = 'AliveCounter'
@@ -153,8 +150,8 @@ class Codec:
     def encode(self, name: str, values: dict, counter: int, strict: bool = True) -> can.Message:
         """One protected frame; ``strict=False`` lets out-of-range values through (tests only)."""
         m = self.message(name)
-        data = bytearray(m.encode({**values, CRC_SIGNAL: 0, COUNTER_SIGNAL: counter % COUNTER_MODULO},
-                                  scaling=True, strict=strict))
+        raw = {**values, CRC_SIGNAL: 0, COUNTER_SIGNAL: counter % COUNTER_MODULO}
+        data = bytearray(m.encode(raw, scaling=True, strict=strict))
         data[0] = self.crc(m.frame_id, data)
         return can.Message(arbitration_id=m.frame_id, data=data, is_extended_id=False,
                            is_fd=False)
@@ -193,7 +190,8 @@ def state_signals(state: VehicleState) -> dict[str, dict]:
               'brake_pedal': int(bool(state.brake_pedal)), 'x': state.x, 'y': state.y,
               'yaw': math.atan2(math.sin(state.yaw), math.cos(state.yaw))}
     fields.update(zip(WHEELS, state.wheel_speeds))
-    return {name: {sig: fields[f] for sig, f in sigs.items()} for name, sigs in STATE_FRAMES.items()}
+    return {name: {sig: fields[f] for sig, f in sigs.items()}
+            for name, sigs in STATE_FRAMES.items()}
 
 
 def state_from_fields(fields: dict, stamp: float, validity: int) -> VehicleState:
@@ -229,7 +227,8 @@ def command_from_signals(status: dict, steer: dict | None, torque: dict | None,
     and ``mode`` is ``Mode.TORQUE_ONLY``.
     """
     mode = int(status['bridge_mode'])
-    if mode == BridgeMode.ACTIVE_FULL and steer and torque and steer['steer_request'] and torque['torque_request']:
+    if mode == BridgeMode.ACTIVE_FULL and steer and torque and steer['steer_request'] \
+            and torque['torque_request']:
         return Command(stamp, float(steer['delta_req']), float(steer['delta_rate_req']),
                        float(torque['torque_req']), Mode.FULL)
     if mode == BridgeMode.ACTIVE_TORQUE_ONLY and torque and torque['torque_request']:

@@ -10,7 +10,7 @@ from drift_control.params import ParamError, config_dir, from_dict, load_yaml, r
 
 @dataclass(frozen=True)
 class BusParams:
-    """What ``can.Bus(**kwargs)`` gets: any python-can interface (socketcan, pcan, virtual, ...)."""
+    """What ``can.Bus(**kwargs)`` gets: any python-can interface (socketcan, pcan, virtual...)."""
 
     interface: str              # python-can backend name
     channel: str                # 'can0', 'PCAN_USBBUS1', a virtual channel name, a multicast group

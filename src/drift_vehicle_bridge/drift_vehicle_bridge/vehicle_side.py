@@ -88,7 +88,11 @@ class CarSide:
         """
         now = time.monotonic() if now is None else now
         while True:
-            msg = self.bus.recv(timeout=0.0)
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except (can.CanError, OSError, ValueError):   # a bad datagram, a bus-off
+                self.checker.faults['bus_error'] += 1
+                break
             if msg is None:
                 break
             frame = self.checker.check(msg, now)

@@ -25,8 +25,10 @@ class BridgeNode(Node):
         super().__init__('vehicle_bridge', **kwargs)
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         self.declare_parameter('scenario', '')
-        bus = {k: v for k in ('interface', 'channel', 'bitrate')
-               if (v := self.declare_parameter(k, 0 if k == 'bitrate' else '').value)}
+        bus = {'interface': self.declare_parameter('interface', '').value,
+               'channel': self.declare_parameter('channel', '').value,
+               'bitrate': self.declare_parameter('bitrate', 0).value}
+        bus = {k: v for k, v in bus.items() if v}    # '' / 0: keep config/bridge.yaml's
         log_file = self.declare_parameter('log_file', '').value
         params = load_bridge_params(cfg, {'bus': bus})
         codec = Codec.load(dbc_path(params, cfg))
@@ -34,8 +36,8 @@ class BridgeNode(Node):
         self._replay = LogReplay(log_file) if log_file else None
         self._hw = log_file or f'{params.bus.interface}:{params.bus.channel}'
         self._stats, self._diag_period = None, 1.0
-        self._state_pub = self.create_publisher(
-            VehicleState, 'vehicle/state', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
