@@ -70,6 +70,15 @@ def test_drift_points_at_30_deg_counter_steer(committed):
     assert np.all(np.sign(delta) == -np.sign(r)), 'sign(delta) == -sign(r)'
 
 
+def test_grip_points_steer_into_the_turn(committed):
+    grip = committed.converged & (committed.data['kind'] == KINDS.index('grip'))
+    assert grip.any()
+    assert np.all(committed.data['delta'][grip] > 0), 'grip: delta has the sign of r'
+    deep = committed.converged & (committed.beta_abs[:, None] >= np.radians(20.0))
+    assert np.all(committed.data['kind'][deep] == KINDS.index('drift'))
+    assert np.all(committed.data['delta'][deep] < 0), 'full drift: counter-steer'
+
+
 def test_speed_grows_with_radius_and_wheels_diverge(committed):
     """What the paper reports (section III-A): V up with R; omega_R - omega_F up with beta."""
     i = int(np.abs(committed.beta_abs - np.radians(25.0)).argmin())

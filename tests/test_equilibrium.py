@@ -71,6 +71,16 @@ def test_open_loop_equilibrium_holds_briefly_then_diverges(drift_30_15, model):
     assert dev.max() > np.radians(5.0), 'then it diverges (unstable drift equilibrium)'
 
 
+def test_drift_equilibrium_has_an_unstable_mode(drift_30_15, model):
+    """Linearised about the drift (inputs held), one eigenvalue has a positive real part."""
+    import casadi as ca
+    x = ca.SX.sym('x', 9)
+    A = ca.Function('A', [x], [ca.jacobian(model.f(x, input_vector(drift_30_15.eq), [0, 1])[:5],
+                                           x)[:, :5]])
+    eig = np.linalg.eigvals(np.asarray(A(state_vector(drift_30_15.eq))))
+    assert eig.real.max() > 0.1, eig
+
+
 def test_speed_grows_with_radius_at_constant_sideslip(vehicle, model):
     Vs = [solve_equilibrium(np.radians(-25.0), R, vehicle, model=model).eq.V
           for R in (10.0, 20.0, 30.0)]

@@ -387,7 +387,7 @@ def _check_hash(meta: dict, meta_path: Path, vehicle, surface) -> None:
         vehicle = vehicle if vehicle is not None else load_vehicle()
         surface = surface if surface is not None else load_surface(meta['surface'])
     except ParamError as err:
-        raise MapError(f'{meta_path}: cannot load the parameters to check the map: {err}') from None
+        raise MapError(f'{meta_path}: cannot load the parameters to check it: {err}') from None
     current = params_hash(vehicle, surface)
     if current != meta['params_hash']:
         msg = (f'{meta_path}: equilibrium map built for parameter hash {meta["params_hash"]}, '

@@ -111,7 +111,7 @@ class _Problem:
 
     @staticmethod
     def _state(z, beta, radius, p: VehicleParams):
-        """Full state from the decision vector; omega_R inverts the slip definition of vehicle.py."""
+        """Full state from the decision vector; omega_R inverts the slip of ``vehicle.slips``."""
         V = z[Z_V]
         v_x = V * ca.cos(beta)
         den_R = smooth_max(v_x, p.v_eps)
