@@ -204,9 +204,9 @@ class PlantModel:
         rk4 = ca.Function('plant_rk4', [x, u, q], [x_next, self.f(x_next, u, q)[1]])
         if jit is None:
             jit = os.environ.get('DRIFT_SIM_JIT', '1') != '0'
-        if jit:
-            rk4 = _jit(rk4) or rk4
-        self.jit = rk4.has_codegen() if hasattr(rk4, 'has_codegen') else jit
+        compiled = _jit(rk4) if jit else None
+        self.jit = compiled is not None
+        rk4 = compiled or rk4
         self.step = rk4.mapaccum('plant_step', p.substeps, [0], [0])
 
 

@@ -1,0 +1,155 @@
+#!/usr/bin/env python3
+"""Closed loop in one process, no DDS: plant + reference selector + NMPC on a scenario.
+
+    .venv/bin/python scripts/simulate.py --scenario steady_dry --json out.json
+    .venv/bin/python scripts/simulate.py --scenario steady_wet --set surface.mu=0.55 --seed 3
+
+The controller runs at its own period (the NMPC's stage length, 20 ms) on the latest measured
+state; the plant is stepped every 10 ms. ``--controller feedforward`` applies the selected
+equilibrium's (delta, T_R) open loop: a baseline to judge the NMPC against, not a substitute.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drift_control.params import ParamError, config_dir, load_vehicle
+from drift_control.reference import ReferenceSelector, load_reference_params
+from drift_control.signals import Command, Mode
+from drift_sim import metrics
+from drift_sim.scenario import load_scenario
+from drift_sim.simulator import Simulator
+
+
+class Feedforward:
+    """The reference equilibrium's steering angle and torque, applied open loop."""
+
+    period = 0.02
+
+    def step(self, state, ref, now):
+        if ref is None:
+            return None, math.nan
+        eq = ref.target
+        return Command(now, eq.delta, 0.0, eq.T_R, Mode.FULL), 0.0
+
+
+class NmpcController:
+    """drift_control.nmpc.Nmpc behind the same small interface."""
+
+    def __init__(self, cfg: Path):
+        from drift_control.nmpc import Nmpc   # written in parallel; imported when used
+        from drift_control.ocp import load_nmpc_params
+        params = load_nmpc_params(cfg / 'nmpc.yaml') if (cfg / 'nmpc.yaml').is_file() \
+            else load_nmpc_params()
+        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params)
+        self.period = float(getattr(params, 'dt', 0.02))
+
+    def step(self, state, ref, now):
+        if ref is None:
+            return None, math.nan
+        result = self.nmpc.step(state, ref, now)
+        return result.command, float(getattr(result, 'solve_time_s', math.nan))
+
+
+def run(args) -> dict:
+    cfg = Path(args.config_dir)
+    loaded = load_scenario(args.scenario, args.set, cfg, seed=args.seed)
+    sc = loaded.scenario
+    from drift_control.eqmap import load_map
+    if not sc.map_file:
+        raise ParamError(f'scenario {sc.name}: no map_file')
+    lookup = load_map(str(cfg.parent / sc.map_file)).lookup
+    selector = ReferenceSelector(lookup, loaded.path,
+                                 load_reference_params(cfg / 'reference.yaml'))
+    controller = Feedforward() if args.controller == 'feedforward' else NmpcController(cfg)
+    sim = Simulator(loaded)
+    every = max(1, int(round(controller.period / sim.dt)))
+    n_steps = int(round(sc.duration / sim.dt))
+
+    state = sim.reset()
+    command, ref = None, None
+    log = {k: [] for k in ('t', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 'mu', 'beta_ref',
+                           'beta_des', 'delta_cmd', 'T_cmd')}
+    solve_times = []
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+        bar = tqdm(total=n_steps, unit='step', file=sys.stderr, desc=sc.name)
+    wall0 = time.perf_counter()
+    for k in range(n_steps):
+        if k % every == 0:
+            ref = selector.select(state)
+            new, solve = controller.step(state, ref, sim.t)
+            if new is not None:
+                command = new
+                solve_times.append(solve)
+        state = sim.step(command)
+        tr = sim.sample()
+        st = tr.state
+        for key, value in (('t', tr.t), ('V', st.V), ('beta', st.beta), ('r', st.r),
+                           ('delta', st.delta), ('T', st.drive_torque), ('e_y', tr.e_y),
+                           ('mu', tr.mu), ('beta_des', tr.beta_des),
+                           ('beta_ref', ref.target.beta if ref is not None else math.nan),
+                           ('delta_cmd', command.delta if command else math.nan),
+                           ('T_cmd', command.drive_torque if command else math.nan)):
+            log[key].append(value)
+        if bar is not None:
+            bar.update(1)
+            if k % 100 == 0:
+                bar.set_postfix(beta=f'{math.degrees(st.beta):+.1f}deg', V=f'{st.V:.1f}')
+        if args.stop_on_spin and abs(st.beta) > metrics.SPIN_BETA:
+            break
+    wall = time.perf_counter() - wall0
+    if bar is not None:
+        bar.close()
+    data = {k: np.asarray(v, dtype=float) for k, v in log.items()}
+    # steady-state tracking is judged against the path's desired sideslip where no reference
+    beta_ref = np.where(np.isfinite(data['beta_ref']), data['beta_ref'], data['beta_des'])
+    out = metrics.summary(data['t'], data['beta'], beta_ref, data['e_y'], sc.metrics.steady,
+                          sc.metrics.transient_end, math.radians(sc.metrics.drift_beta_deg),
+                          solve_times, wall)
+    out.update(scenario=sc.name, seed=sim.plant.seed, controller=args.controller,
+               overrides=list(args.set), expect_spin=sc.expect_spin,
+               commands_lost=sim.commands_lost, plant_jit=bool(sim.plant.model.jit))
+    if args.trace:
+        np.savez_compressed(args.trace, **data)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--scenario', required=True, help='name under config/scenarios or file')
+    parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                        help='override a scenario key (surface.mu=0.55, plant.lsd.locking=1)')
+    parser.add_argument('--seed', type=int, default=None)
+    parser.add_argument('--controller', choices=('nmpc', 'feedforward'), default='nmpc')
+    parser.add_argument('--config-dir', default=str(config_dir()))
+    parser.add_argument('--json', help='write the metrics here')
+    parser.add_argument('--trace', help='write the time series here (.npz)')
+    parser.add_argument('--stop-on-spin', action='store_true')
+    parser.add_argument('--quiet', action='store_true', help='no progress bar')
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    try:
+        out = run(args)
+    except ParamError as err:
+        print(f'simulate: {err}', file=sys.stderr)
+        return 2
+    out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+           for k, v in out.items()}
+    text = json.dumps(out, indent=2, sort_keys=True)
+    if args.json:
+        Path(args.json).write_text(text + '\n')
+    print(text)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""Run metrics on time series (pure numpy): tracking, path error, spin, time in drift, timing.
+
+Used by ``scripts/simulate.py`` on the simulator's ground truth and by the run-report tool on
+recorded bags; every function takes arrays sampled at the same times ``t`` [s].
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SPIN_BETA = math.radians(75.0)   # |beta| beyond this the car has spun [rad]
+
+
+def in_windows(t, windows) -> np.ndarray:
+    """Boolean mask of the samples of ``t`` inside any ``[t0, t1)`` window."""
+    t = np.asarray(t, dtype=float)
+    mask = np.zeros(t.shape, dtype=bool)
+    for t0, t1 in windows:
+        mask |= (t >= t0) & (t < t1)
+    return mask
+
+
+def rms(values) -> float:
+    """Root mean square; NaN for no samples."""
+    values = np.asarray(values, dtype=float)
+    return float(np.sqrt(np.mean(values ** 2))) if values.size else math.nan
+
+
+def beta_rms_error(t, beta, beta_ref, windows) -> float:
+    """RMS sideslip tracking error inside the steady-drift windows [rad]."""
+    mask = in_windows(t, windows)
+    return rms((np.asarray(beta) - np.asarray(beta_ref))[mask])
+
+
+def max_abs_after(t, values, t_from: float) -> float:
+    """Largest ``|value|`` at ``t >= t_from`` (e.g. the lateral error after the transient)."""
+    t, values = np.asarray(t), np.asarray(values)
+    sel = np.abs(values[t >= t_from])
+    return float(sel.max()) if sel.size else math.nan
+
+
+def spin_time(t, beta, threshold: float = SPIN_BETA) -> float:
+    """First time |beta| exceeds ``threshold`` [s]; NaN when the car never spun."""
+    idx = np.flatnonzero(np.abs(np.asarray(beta)) > threshold)
+    return float(np.asarray(t)[idx[0]]) if idx.size else math.nan
+
+
+def time_in_drift(t, beta, threshold: float) -> float:
+    """Total time with ``threshold < |beta| <= SPIN_BETA`` [s] (sample-and-hold)."""
+    t, beta = np.asarray(t, dtype=float), np.abs(np.asarray(beta, dtype=float))
+    if t.size < 2:
+        return 0.0
+    dt = np.diff(t, append=t[-1] + (t[-1] - t[-2]))
+    return float(np.sum(dt[(beta > threshold) & (beta <= SPIN_BETA)]))
+
+
+def percentiles(values, qs=(50, 99)) -> dict:
+    """``{'p50': ..., 'p99': ...}`` of ``values``; NaN for no samples."""
+    values = np.asarray(values, dtype=float)
+    values = values[np.isfinite(values)]
+    return {f'p{q}': float(np.percentile(values, q)) if values.size else math.nan for q in qs}
+
+
+def summary(t, beta, beta_ref, e_y, windows, transient_end: float, drift_beta: float,
+            solve_times=(), wall_time: float = math.nan) -> dict:
+    """The standard metrics of one run, as a JSON-ready dict (angles in degrees, suffixed)."""
+    t = np.asarray(t, dtype=float)
+    spun_at = spin_time(t, beta)
+    duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    solve = percentiles(np.asarray(solve_times, dtype=float) * 1e3)
+    return {
+        'beta_rms_error_deg': math.degrees(beta_rms_error(t, beta, beta_ref, windows)),
+        'max_abs_e_y_m': max_abs_after(t, e_y, transient_end),
+        'spun': bool(math.isfinite(spun_at)),
+        'spin_time_s': None if math.isnan(spun_at) else spun_at,
+        'time_in_drift_s': time_in_drift(t, beta, drift_beta),
+        'solve_time_ms_p50': solve['p50'],
+        'solve_time_ms_p99': solve['p99'],
+        'sim_duration_s': duration,
+        'real_time_factor': duration / wall_time if wall_time and wall_time > 0 else math.nan,
+    }
