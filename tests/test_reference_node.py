@@ -20,6 +20,7 @@ _WITH_FAKE_MAP = textwrap.dedent('''
     import math, sys, types
     from drift_control.signals import Equilibrium
     class FakeMap:
+        radius = [8.0, 40.0]
         def lookup(self, beta_abs, radius, direction):
             V = math.sqrt(7.0 * radius); d = int(direction)
             return Equilibrium(V, -d * beta_abs, d * V / radius, V / 0.3, V / 0.3, -d * 0.1,

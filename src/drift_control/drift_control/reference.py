@@ -8,9 +8,10 @@ and the altered curvature indexes the lookup table. Here::
 
 with positive gains: a car left of the path (``e_y > 0``) is asked to turn more to the right. On
 a left circle the outside is ``e_y < 0``, so an outside car gets a tighter left curvature.
-``|K_cmd|`` is limited to the map's curvature range and rate-limited in time; inside the band
-``|K_cmd| < 1/radius_max`` the left and right equilibria at ``radius_max`` are blended, so a
-left <-> right transition passes continuously through (beta, r, delta) = 0.
+``|K_cmd|`` is limited to the map's curvature range and rate-limited in time. The left and right
+equilibria are blended with a weight that is linear in ``K_cmd`` on ``|K_cmd| < 1/radius_max``
+and rate-limited in time, so a left <-> right transition passes continuously through
+(beta, r, delta) = 0 and takes at least ``1 / side_rate_max`` seconds.
 """
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ class ReferenceParams:
     correction_limit: float = 0.05     # bound on |K_cmd - K(s)| [1/m]
     curvature_rate_max: float = 0.5    # bound on |dK_cmd/dt| [1/(m s)]
     beta_rate_max: float = 1.0         # bound on |d beta_ref/dt| [rad/s]
+    side_rate_max: float = 1.5    # left<->right blend weight rate [1/s]; a flip takes >= 1/this
     horizon_steps: int = 0        # equilibria along the predicted arc length (0: none)
     horizon_dt: float = 0.02      # time between horizon stages [s]
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
@@ -111,31 +113,37 @@ class ReferenceSelector:
         self._warn = _Throttled(params.warn_interval)
         self._last: Reference | None = None
         self._integral = 0.0
-        self._beta_ref = None
+        self._beta_ref = self._w = None
         self.rejected = 0      # states refused as non-finite or without a pose
 
     def reset(self, s_hint: float | None = None) -> None:
         """Forget the previous cycle (new run): zero integrator, no rate limits, and a global
         search for the path position (or a local one around ``s_hint`` [m])."""
         self.frenet.reset(s_hint)
-        self._last, self._integral, self._beta_ref = None, 0.0, None
+        self._last, self._integral, self._beta_ref, self._w = None, 0.0, None, None
 
-    def equilibrium(self, beta_abs: float, K_cmd: float) -> tuple[Equilibrium, Direction, bool]:
+    def side_weight(self, K_cmd: float) -> float:
+        """Weight of the left equilibrium [-]: 1 for ``K_cmd >= 1/radius_max``, 0 for
+        ``K_cmd <= -1/radius_max``, linear in between."""
+        w = 0.5 * (1.0 + K_cmd * self.p.radius_max)
+        return max(0.0, min(1.0, w))
+
+    def equilibrium(self, beta_abs: float, K_cmd: float,
+                    w: float | None = None) -> tuple[Equilibrium, Direction, bool]:
         """The map equilibrium for sideslip magnitude [rad] and signed curvature [1/m].
 
-        Returns the equilibrium, the drift direction (NONE inside the blend band) and whether the
-        lookup clamped.
+        ``w`` is the weight of the left equilibrium (default ``side_weight(K_cmd)``); both sides
+        are looked up at the radius ``1 / |K_cmd|`` limited to the map range. Returns the
+        equilibrium, the direction (NONE while blending) and whether the lookup clamped.
         """
-        k_band = 1.0 / self.p.radius_max
-        k_abs = min(abs(K_cmd), 1.0 / self.p.radius_min)
-        radius = 1.0 / max(k_abs, k_band)
-        if k_abs >= k_band:
-            direction = Direction.LEFT if K_cmd > 0.0 else Direction.RIGHT
+        w = self.side_weight(K_cmd) if w is None else w
+        radius = 1.0 / max(min(abs(K_cmd), 1.0 / self.p.radius_min), 1.0 / self.p.radius_max)
+        if w in (0.0, 1.0):
+            direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
             eq, clamped = self._lookup(beta_abs, radius, direction)
             return eq, direction, clamped
         left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
-        w = 0.5 * (1.0 + K_cmd / k_band)   # 1 at +k_band (pure left), 0 at -k_band
         return _blend(left, right, w), Direction.NONE, c_l or c_r
 
     def select(self, state: VehicleState) -> Reference | None:
@@ -167,13 +175,17 @@ class ReferenceSelector:
         if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
-        target, direction, clamped = self.equilibrium(beta_abs, K_cmd)
+        w = self.side_weight(K_cmd)
+        if limited and self._w is not None:
+            w = _limit(self._w, w, p.side_rate_max * dt)
+        self._w = w
+        target, direction, clamped = self.equilibrium(beta_abs, K_cmd, w)
         clamped = clamped or abs(K_raw) > k_max
         if clamped:
-            self._warn.warning('clamp', 'reference: outside the equilibrium map at s=%.1f m '
-                               '(beta %.1f deg, K %.4f 1/m), clamped', fp.s,
+            self._warn.warning('clamp', 'reference: lookup clamped (off the map grid or in a '
+                               'hole) at s=%.1f m (beta %.1f deg, K %.4f 1/m)', fp.s,
                                math.degrees(beta_abs), K_raw)
-        horizon = self._horizon(fp.s, state.V, correction, K_cmd, beta_abs, target)
+        horizon = self._horizon(fp.s, state.V, correction, (K_cmd, beta_abs, w), target)
         ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
                         curvature=fp.K, curvature_cmd=K_cmd, s=fp.s, e_y=fp.e_y,
                         heading_error=fp.heading_error, clamped=clamped)
@@ -185,19 +197,20 @@ class ReferenceSelector:
         self._last = ref
         return ref
 
-    def _horizon(self, s, V, correction, K_cmd, beta_abs, target):
+    def _horizon(self, s, V, correction, start, target):
         """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 is ``target``), same limits."""
-        p = self.p
+        p, h = self.p, self.p.horizon_dt
         if p.horizon_steps == 0:
             return ()
-        out, K_prev, b_prev = [target], K_cmd, beta_abs
+        out, (K, beta, w) = [target], start
         k_max = 1.0 / p.radius_min
         for k in range(1, p.horizon_steps):
-            s_k = s + max(V, 0.0) * k * p.horizon_dt
+            s_k = s + max(V, 0.0) * k * h
             K_k = max(-k_max, min(k_max, float(self.path.curvature_at(s_k)) - correction))
-            K_prev = _limit(K_prev, K_k, p.curvature_rate_max * p.horizon_dt)
-            b_prev = _limit(b_prev, float(self.path.beta_at(s_k)), p.beta_rate_max * p.horizon_dt)
-            out.append(self.equilibrium(b_prev, K_prev)[0])
+            K = _limit(K, K_k, p.curvature_rate_max * h)
+            beta = _limit(beta, float(self.path.beta_at(s_k)), p.beta_rate_max * h)
+            w = _limit(w, self.side_weight(K), p.side_rate_max * h)
+            out.append(self.equilibrium(beta, K, w)[0])
         return tuple(out)
 
 

@@ -1,6 +1,7 @@
 """Reference node: vehicle/state -> ReferenceSelector -> drift/reference at a fixed rate."""
 import os
 import sys
+from dataclasses import replace
 
 import rclpy
 from drift_msgs.msg import DriftReference, VehicleState
@@ -15,21 +16,24 @@ from drift_control.path import load_path
 from drift_control.reference import ReferenceSelector, load_reference_params
 
 
-def load_map_lookup(cfg: str, scenario: str, map_file: str):
-    """``EquilibriumMap.lookup`` of ``map_file`` or the scenario's; never a made-up map.
+def load_map(cfg: str, scenario: str, map_file: str):
+    """The EquilibriumMap of ``map_file`` (else the scenario's); never a made-up map.
 
-    A relative file name is taken from the checkout root (the parent of ``config_dir``).
+    A relative name is taken from the checkout root (the parent of ``config_dir``).
     """
     if not map_file and scenario:
         map_file = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')).get('map_file', '')
-    map_file = os.path.join(os.path.dirname(os.path.abspath(cfg)), map_file) if map_file else ''
+    if not map_file:
+        raise ParamError('no map_file parameter (nor map_file in the scenario): no equilibria')
+    map_file = os.path.join(os.path.dirname(os.path.abspath(cfg)), map_file)
     try:
-        from drift_control.eqmap import load_map
+        from drift_control.eqmap import load_map as load
     except ImportError as err:
         raise ParamError(f'drift_control.eqmap is not available ({err}): no equilibrium map')
-    if not map_file or not os.path.isfile(map_file):
-        raise ParamError(f'map_file {map_file!r}: equilibrium map not found')
-    return load_map(map_file).lookup
+    try:
+        return load(map_file)
+    except (OSError, ValueError) as err:   # eqmap.MapError is a ValueError
+        raise ParamError(f'equilibrium map {map_file}: {err}') from None
 
 
 def load_path_for(cfg: str, scenario: str, path_file: str):
@@ -59,7 +63,10 @@ class ReferenceNode(Node):
         map_file = self.declare_parameter('map_file', '').value
         params = load_reference_params(os.path.join(cfg, 'reference.yaml'))
         path = load_path_for(cfg, scenario, path_file)
-        self._selector = ReferenceSelector(load_map_lookup(cfg, scenario, map_file), path, params)
+        eqmap = load_map(cfg, scenario, map_file)
+        params = replace(params, radius_min=max(params.radius_min, float(eqmap.radius[0])),
+                         radius_max=min(params.radius_max, float(eqmap.radius[-1])))
+        self._selector = ReferenceSelector(eqmap.lookup, path, params)
         self._state, self._fresh = None, False
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -69,7 +76,8 @@ class ReferenceNode(Node):
         self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
                                  qos_profile_sensor_data)
         self.create_timer(params.period, self._on_tick)
-        self.get_logger().info(f'path {path.name}: {path.length:.1f} m, map {map_file}')
+        self.get_logger().info(f'path {path.name}: {path.length:.1f} m; radii {params.radius_min:g}'
+                               f'..{params.radius_max:g} m')
 
     def _on_state(self, msg):
         self._state, self._fresh = convert.state_from_msg(msg), True
