@@ -161,14 +161,15 @@ def _check_tx_allow(codec: Codec, params: BridgeParams) -> frozenset[str]:
             raise ParamError(f'bridge.tx_allow: {name!r} is sent by {senders}, not DRIFT_STACK')
     lim = params.limits
     sig = {s.name: s for m in (CMD_STEER, CMD_TORQUE) for s in codec.message(m).signals}
-    for key, value, signal in (('delta_max', lim.delta_max, 'delta_req'),
-                               ('delta_rate_max', lim.delta_rate_max, 'delta_rate_req'),
-                               ('torque_min', lim.torque_min, 'torque_req'),
-                               ('torque_max', lim.torque_max, 'torque_req')):
+    checks = (('delta_max', (lim.delta_max, -lim.delta_max), 'delta_req'),
+              ('delta_rate_max', (lim.delta_rate_max, -lim.delta_rate_max), 'delta_rate_req'),
+              ('torque_min', (lim.torque_min,), 'torque_req'),
+              ('torque_max', (lim.torque_max,), 'torque_req'))
+    for key, values, signal in checks:
         s = sig[signal]
-        if not s.minimum <= value <= s.maximum or not s.minimum <= -abs(value):
-            raise ParamError(f'bridge.limits.{key}: {value} outside the DBC range of {signal} '
-                             f'[{s.minimum}, {s.maximum}]')
+        if not all(s.minimum <= v <= s.maximum for v in values):
+            raise ParamError(f'bridge.limits.{key}: {values[0]} outside the DBC range of '
+                             f'{signal} [{s.minimum}, {s.maximum}]')
     return frozenset(params.tx_allow)
 
 
