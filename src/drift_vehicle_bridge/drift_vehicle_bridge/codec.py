@@ -16,6 +16,7 @@ import can
 import cantools
 from crccheck.crc import Crc8SaeJ1850
 
+from drift_control.params import ParamError
 from drift_control.signals import Command, Mode, Validity, VehicleState
 from drift_vehicle_bridge.mode import BridgeMode
 
@@ -106,11 +107,11 @@ class Codec:
             crc, counter = _signal(m, CRC_SIGNAL), _signal(m, COUNTER_SIGNAL)
             if crc is None or crc.start != 0 or crc.length != 8 or counter is None \
                     or counter.length != 4:
-                raise ValueError(f'{m.name}: needs CRC at bits 0..7 and a 4-bit AliveCounter')
+                raise ParamError(f'dbc {m.name}: needs CRC at bits 0..7 and a 4-bit AliveCounter')
             attr = m.dbc.attributes.get('E2E_DataID') if m.dbc else None
             data_id = attr.value if attr else 0
             if not 0 < data_id < 65536 or data_id in seen_ids:
-                raise ValueError(f'{m.name}: E2E_DataID {data_id} missing or not unique')
+                raise ParamError(f'dbc {m.name}: E2E_DataID {data_id} missing or not unique')
             seen_ids.add(data_id)
             self._data_id[m.frame_id] = data_id.to_bytes(2, 'little')
             # Half a step of slack: decoded values are raw * scale, exact to float rounding.
@@ -120,21 +121,25 @@ class Codec:
         for name, sigs in STATE_FRAMES.items():
             missing = set(sigs) - {s.name for s in self.message(name).signals}
             if missing:
-                raise ValueError(f'{name}: DBC lacks signal(s) {sorted(missing)}')
+                raise ParamError(f'dbc {name}: lacks signal(s) {sorted(missing)}')
         for name in COMMAND_FRAMES:
             self.message(name)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> 'Codec':
         """Read a DBC file (cantools, strict: overlapping signals are an error)."""
-        return cls(cantools.database.load_file(str(path), database_format='dbc', strict=True))
+        try:
+            db = cantools.database.load_file(str(path), database_format='dbc', strict=True)
+        except (OSError, cantools.database.UnsupportedDatabaseFormatError) as err:
+            raise ParamError(f'{path}: cannot read the DBC: {err}') from None
+        return cls(db)
 
     def message(self, name: str):
         """The cantools message called ``name``."""
         try:
             return self._by_name[name]
         except KeyError:
-            raise ValueError(f'DBC has no message {name!r}') from None
+            raise ParamError(f'dbc: no message {name!r}') from None
 
     def frame_id(self, name: str) -> int:
         return self.message(name).frame_id

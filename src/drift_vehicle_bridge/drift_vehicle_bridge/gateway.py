@@ -155,7 +155,7 @@ def _check_tx_allow(codec: Codec, params: BridgeParams) -> frozenset[str]:
     for name in params.tx_allow:
         try:
             senders = codec.message(name).senders
-        except ValueError:
+        except ParamError:
             raise ParamError(f'bridge.tx_allow: {name!r} is not a message of the DBC') from None
         if 'DRIFT_STACK' not in senders:
             raise ParamError(f'bridge.tx_allow: {name!r} is sent by {senders}, not DRIFT_STACK')
