@@ -21,7 +21,8 @@ from typing import Callable
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
-from drift_control.equilibrium import SolverSettings, default_model, solve_row
+from drift_control.equilibrium import (SolverSettings, default_model, derivative_scale,
+                                       solve_row)
 from drift_control.params import (ParamError, Surface, VehicleParams, config_dir, from_dict,
                                   load_surface, load_vehicle, load_yaml, params_hash, require)
 from drift_control.signals import Direction, Equilibrium
@@ -254,6 +255,7 @@ def build_map(vehicle: VehicleParams, surface: Surface, params: MapParams = MapP
                     on_row(j)
     build_time = time.perf_counter() - t0
 
+    model = default_model(vehicle)   # the model each worker solved (same parameters)
     shape = (len(betas), len(radii))
     data = {k: np.zeros(shape) for k in STATE_FIELDS + FORCE_FIELDS + ('residual',)}
     data['converged'] = np.zeros(shape, dtype=bool)
@@ -280,7 +282,11 @@ def build_map(vehicle: VehicleParams, surface: Surface, params: MapParams = MapP
         'seed_beta_deg': params.seed_beta_deg,
         'solver': {'method': 'scipy.optimize.least_squares trf + exact CasADi Jacobian, '
                              'Newton polish; continuation along beta per radius',
+                   'residual_scale': derivative_scale(vehicle).tolist(),
+                   'residual': 'max |x_dot[V, beta, r, omega_F, omega_R] / residual_scale|',
                    **asdict(params.solver)},
+        'model': {'class': 'drift_control.vehicle.VehicleModel', 'load_passes': model.load_passes,
+                  'front_wheel': model.front_wheel},
         'converged_fraction': float(np.mean(data['converged'])),
         'build_time_s': round(build_time, 3),
         'jobs': jobs,
