@@ -49,17 +49,15 @@ def test_node_exits_non_zero_without_a_map(env, tmp_path):
     assert 'map' in out.stderr.lower(), out.stderr
 
 
-def test_node_publishes_references_and_the_path(env, tmp_path):
+def _drive_node(cmd, env):
+    """Start the node, feed it 2 s of a car 1 m outside the 15 m circle, collect its output."""
     import rclpy
     from drift_msgs.msg import DriftReference, VehicleState
     from nav_msgs.msg import Path as PathMsg
     from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
 
-    map_file = tmp_path / 'fake_map'
-    map_file.write_text('the fake load_map ignores this')
-    proc = subprocess.Popen([sys.executable, '-c', _WITH_FAKE_MAP, '--ros-args', '-p',
-                             f'path_file:={CIRCLE}', '-p', f'map_file:={map_file}'], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
     rclpy.init()
     node = rclpy.create_node('reference_test')
     refs, paths = [], []
@@ -73,7 +71,7 @@ def test_node_publishes_references_and_the_path(env, tmp_path):
             assert time.monotonic() < deadline and proc.poll() is None, 'node did not come up'
             rclpy.spin_once(node, timeout_sec=0.1)
         R, V = 15.0, 10.0
-        for k in range(100):                     # 2 s of a car 1 m outside the circle
+        for k in range(100):
             theta = V * 0.02 * k / R
             m = VehicleState(v=V, beta=-0.5, r=V / R, x=16 * math.sin(theta),
                              y=R - 16 * math.cos(theta), yaw=theta + 0.5, validity=2047)
@@ -98,3 +96,23 @@ def test_node_publishes_references_and_the_path(env, tmp_path):
     assert last.curvature == pytest.approx(1 / R) and last.curvature_cmd > 1 / R
     assert last.s == pytest.approx(V * 0.02 * (last.header.stamp.sec * 50
                                                + last.header.stamp.nanosec // 20_000_000), abs=0.05)
+    return refs
+
+
+def test_node_publishes_references_and_the_path(env, tmp_path):
+    map_file = tmp_path / 'fake_map'
+    map_file.write_text('the fake load_map ignores this')
+    _drive_node([sys.executable, '-c', _WITH_FAKE_MAP, '--ros-args', '-p',
+                 f'path_file:={CIRCLE}', '-p', f'map_file:={map_file}'], env)
+
+
+@pytest.mark.skipif(not os.path.isfile(os.path.join(os.path.dirname(str(config_dir())), 'maps',
+                                                    'dry.npz')), reason='maps/dry not built')
+def test_node_with_the_real_map(env):
+    refs = _drive_node([sys.executable, '-m', 'drift_control.nodes.reference_node', '--ros-args',
+                        '-p', f'path_file:={CIRCLE}', '-p', 'map_file:=maps/dry'], env)
+    last = refs[-1]
+    assert len(last.horizon) > 1
+    assert last.s < 20.0, 'still in the grip entry of circle_left_15 (grip_until 20 m)'
+    assert last.target.beta == 0.0 and last.target.delta > 0.0, 'grip steers into the turn'
+    assert last.horizon[-1].beta < 0.0, 'the horizon sees the drift entry coming'
