@@ -198,7 +198,9 @@ def solve_equilibrium(beta: float, radius: float, p: VehicleParams, mu: float = 
         Surface friction scale [-].
     guess : Equilibrium or array, optional
         Starting point: a neighbouring equilibrium (continuation) or a solver vector
-        ``[V, omega_F, kappa_R, delta, T_R]``; default ``initial_guess`` (drift branch).
+        ``[V, omega_F, kappa_R, delta, T_R]``. Default: the ``drift_guesses`` in turn until one
+        converges to a counter-steering drift (a few ms when the first works; up to ~1 s to
+        give up where no equilibrium exists within the bounds).
     model : VehicleModel, optional
         The model whose ``f`` is solved; default ``VehicleModel(p)``.
     settings : SolverSettings
@@ -255,10 +257,10 @@ def solve_row(betas, radius: float, p: VehicleParams, mu: float = 1.0, seed_beta
     betas = np.asarray(betas, dtype=float)
     model = model if model is not None else default_model(p)
     order = np.argsort(np.abs(betas - seed_beta))
-    seeds = order[:max(1, len(order))]
+    seeds = order[:6]   # a seed that is no equilibrium (e.g. steering-limited): the next one
     out: list[EquilibriumSolution | None] = [None] * len(betas)
     i0 = int(seeds[0])
-    for i in seeds[:6]:   # a seed that is not an equilibrium (e.g. steering-limited): next one
+    for i in seeds:
         sol = solve_equilibrium(betas[i], radius, p, mu, model=model, settings=settings)
         out[i] = sol
         if sol.converged:
