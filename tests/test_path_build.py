@@ -35,6 +35,13 @@ def test_circle_is_a_circle():
     _check_geometry(path)
 
 
+def test_interpolation_between_samples_is_exact_on_a_circle():
+    path = P.circle(R, Direction.RIGHT)                       # clockwise, yaw 0 at s = 0
+    s = np.linspace(-10.0, 3 * path.length, 1001)             # across the seam, several laps
+    assert path.heading_at(s) == pytest.approx(P.wrap_angle(-s / R), abs=1e-12)
+    assert path.curvature_at(s) == pytest.approx(np.full(s.shape, -1 / R))
+
+
 def test_alternating_is_left_then_right_with_a_continuous_curvature():
     path = P.alternating(R, transition=10.0, laps_first=1.0, laps_second=1.0)
     assert not path.closed

@@ -124,31 +124,25 @@ class Path:
             return np.mod(s, self.length)
         return np.clip(s, 0.0, self.length)
 
-    def _interp(self, values, s):
+    def _segment(self, s):
+        """Sample index before ``s``, the one after it, and the fraction between them."""
         u = np.asarray(self.lap_position(s)) / self.ds
-        i0 = np.floor(u).astype(int)
-        w = u - i0
         if self.closed:
-            i0 = np.mod(i0, self.n)
-            i1 = np.mod(i0 + 1, self.n)
-        else:
-            i0 = np.clip(i0, 0, self.n - 2)
-            w = np.asarray(self.lap_position(s)) / self.ds - i0
-            i1 = i0 + 1
-        return (1.0 - w) * values[i0] + w * values[i1]
+            i0 = np.floor(u).astype(int)
+            return np.mod(i0, self.n), np.mod(i0 + 1, self.n), u - i0
+        i0 = np.clip(np.floor(u).astype(int), 0, self.n - 2)
+        return i0, i0 + 1, u - i0
 
     def curvature_at(self, s):
         """Curvature K(s) [1/m], linear between samples."""
-        return self._interp(self.K, s)
+        i0, i1, w = self._segment(s)
+        return (1.0 - w) * self.K[i0] + w * self.K[i1]
 
     def heading_at(self, s):
-        """Tangent angle [rad], wrapped to (-pi, pi]."""
-        psi = self.psi
-        if self.closed:   # unwrapped psi jumps by 2 pi * winding at the seam: interpolate mod lap
-            u = np.asarray(self.lap_position(s)) / self.ds
-            i0 = np.mod(np.floor(u).astype(int), self.n)
-            return wrap_angle(psi[i0] + (u - np.floor(u)) * self.ds * self.K[i0])
-        return wrap_angle(self._interp(psi, s))
+        """Tangent angle [rad], wrapped to (-pi, pi]; exact on arcs and straights."""
+        i0, i1, w = self._segment(s)
+        # from the sample before, not between unwrapped samples: psi jumps at a closed seam
+        return wrap_angle(self.psi[i0] + w * self.ds * 0.5 * (self.K[i0] + self.K[i1]))
 
     def beta_at(self, s):
         """Desired sideslip magnitude [rad] at unwrapped arc length ``s`` [m]."""
