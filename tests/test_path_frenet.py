@@ -59,7 +59,8 @@ def test_arc_projection_matches_line_for_vanishing_curvature():
                                      lambda: P.polyline(
                                          [[30 * math.cos(a), 20 * math.sin(a)] for a in
                                           np.linspace(0, 2 * math.pi, 24, endpoint=False)],
-                                         closed=True)])
+                                         closed=True),
+                                     lambda: P.circle(2.0)])   # a lap shorter than the window
 def test_s_is_continuous_across_the_seam_for_three_laps(builder):
     """Drive 3 laps 0.5 m off the path in 0.3 m steps: s grows by ~0.3 m each step, no jump."""
     path = builder()

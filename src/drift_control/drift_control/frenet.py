@@ -82,6 +82,9 @@ class Frenet:
         self.path = path
         self._back = max(int(math.ceil(window_back / path.ds)), 1)
         self._fwd = max(int(math.ceil(window_forward / path.ds)), 1)
+        if path.closed and self._back + self._fwd >= path.n // 2:
+            # a window of half a lap or more would see the car ahead and behind: shrink it
+            self._back, self._fwd = max(path.n // 12, 1), max(path.n // 4, 1)
         self._lost = lost_distance
         self._j: int | None = None      # unwrapped index of the previous nearest sample
         self.points_examined = 0        # samples looked at by the last call (for tests, logs)
