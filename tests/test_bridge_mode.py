@@ -202,6 +202,19 @@ def test_driver_torque_at_the_threshold_is_not_a_takeover(rig):
         assert rig.cycle(state=replace(CALM, steering_torque=thr - 0.01))[0].active
 
 
+def test_torque_only_driver_steering_is_not_a_takeover_but_full_mode_is(rig):
+    """Semi-automated mode: the driver steers hard by design; only the brake takes over."""
+    torque_only = replace(DRIFT, mode=Mode.TORQUE_ONLY)
+    rig.arm_and_activate(command=torque_only)
+    steering = replace(CALM, steering_torque=4 * rig.params.mode.steering_torque_takeover)
+    for _ in range(10):
+        mode, applied, written = rig.cycle(state=steering, command=torque_only)
+        assert mode == BridgeMode.ACTIVE_TORQUE_ONLY and _requests(written) == [CMD_TORQUE]
+    mode, applied, written = rig.cycle(state=steering, command=DRIFT)   # asks to steer: no
+    assert mode == BridgeMode.OFF and applied is None and not _requests(written)
+    assert rig.gw.modes.reason == DropReason.DRIVER_TORQUE
+
+
 def test_disarm_and_arm_timeout(rig):
     rig.arm_and_activate()
     rig.gw.disarm()

@@ -56,11 +56,16 @@ class ModeManager:
         self.reason = DropReason.NONE
         self._armed_at = 0.0
 
-    def hazard(self, state: VehicleState | None, envelope: Envelope) -> DropReason | None:
-        """The first reason not to request anything from the car in ``state``, or None."""
+    def hazard(self, state: VehicleState | None, envelope: Envelope,
+               stack_steers: bool = True) -> DropReason | None:
+        """The first reason not to request anything from the car in ``state``, or None.
+
+        Driver steering torque is a takeover only while the stack steers (or may start to): in
+        the torque-only (semi-automated) mode the driver's hands on the wheel are the point.
+        """
         if state is None or not state.is_finite() or not state.has(REQUIRED):
             return DropReason.STATE_INVALID
-        if abs(state.steering_torque) > self.p.steering_torque_takeover:
+        if stack_steers and abs(state.steering_torque) > self.p.steering_torque_takeover:
             return DropReason.DRIVER_TORQUE
         if state.brake_pedal:
             return DropReason.BRAKE_PEDAL
@@ -88,11 +93,13 @@ class ModeManager:
         """The mode for this cycle at time ``now`` [s]; ``command_time`` is when it arrived."""
         if self.mode == BridgeMode.OFF:
             return self.mode
-        hazard = self.hazard(state, self.p.active_envelope)
-        if hazard is not None:
-            return self._drop(hazard)
         fresh = command is not None and command_time is not None \
             and now - command_time <= self.p.heartbeat_timeout
+        driver_steers = (self.mode == BridgeMode.ACTIVE_TORQUE_ONLY and not fresh) or (
+            fresh and self._active_mode(command.mode) == BridgeMode.ACTIVE_TORQUE_ONLY)
+        hazard = self.hazard(state, self.p.active_envelope, stack_steers=not driver_steers)
+        if hazard is not None:
+            return self._drop(hazard)
         if self.mode == BridgeMode.ARMED:
             if fresh and command.mode != Mode.OFF:
                 self.mode = self._active_mode(command.mode)
