@@ -9,11 +9,12 @@ at ``s_i = i * ds`` (uniform, so ``s -> index`` is O(1)), a closed/open flag and
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drift_control.params import ParamError
+from drift_control.params import ParamError, load_yaml
 from drift_control.signals import Direction
 
 _SEGMENT_CLOSURE_TOL = 1e-3   # [m] a closed path built from segments must end where it started
@@ -430,5 +431,27 @@ def load_path(raw: dict, where: str = 'path') -> Path:
                     _number(raw, 'smoothing', where, 0.0), **kw)
 
 
+def load_scenario_path(cfg_dir, scenario: str = '', path_file: str = '') -> Path:
+    """The path of a run: ``path_file``, else the ``path:`` of ``scenarios/<scenario>.yaml``.
+
+    The scenario's ``path:`` is either the path mapping itself or the name of a file under
+    ``<cfg_dir>/paths/`` (with or without ``.yaml``). A path file holds a ``path:`` mapping.
+    """
+    cfg_dir = os.fspath(cfg_dir)
+    if not path_file:
+        if not scenario:
+            raise ParamError('give a scenario (with a path: section) or a path_file')
+        where = f'scenarios/{scenario}.yaml'
+        section = load_yaml(os.path.join(cfg_dir, 'scenarios', f'{scenario}.yaml')).get('path')
+        if isinstance(section, dict):
+            return load_path(section, f'{where}: path')
+        if not isinstance(section, str):
+            raise ParamError(f'{where}: path: missing (a mapping or a file under paths/)')
+        path_file = os.path.join(cfg_dir, 'paths', section if section.endswith('.yaml')
+                                 else f'{section}.yaml')
+    raw = load_yaml(path_file)
+    return load_path(raw.get('path', raw), os.path.basename(path_file))
+
+
 __all__ = ['Path', 'SideslipProfile', 'alternating', 'circle', 'figure8', 'from_segments',
-           'load_path', 'polyline', 'wrap_angle']
+           'load_path', 'load_scenario_path', 'polyline', 'wrap_angle']

@@ -12,7 +12,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 
 from drift_control.nodes import convert
 from drift_control.params import ParamError, config_dir, load_yaml
-from drift_control.path import load_path
+from drift_control.path import load_scenario_path
 from drift_control.reference import ReferenceSelector, load_reference_params
 
 
@@ -36,22 +36,6 @@ def load_map(cfg: str, scenario: str, map_file: str):
         raise ParamError(f'equilibrium map {map_file}: {err}') from None
 
 
-def load_path_for(cfg: str, scenario: str, path_file: str):
-    """The path from ``path_file``, else the scenario's ``path:`` (a mapping or a paths/ name)."""
-    if not path_file:
-        if not scenario:
-            raise ParamError('give a scenario (with a path: section) or a path_file')
-        section = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')).get('path')
-        if isinstance(section, dict):
-            return load_path(section, f'scenarios/{scenario}.yaml: path')
-        if not isinstance(section, str):
-            raise ParamError(f'scenarios/{scenario}.yaml: path: missing')
-        path_file = os.path.join(cfg, 'paths', section if section.endswith('.yaml')
-                                 else f'{section}.yaml')
-    raw = load_yaml(path_file)
-    return load_path(raw.get('path', raw), os.path.basename(path_file))
-
-
 class ReferenceNode(Node):
     """Publishes the equilibrium reference for the latest vehicle state, and the path."""
 
@@ -62,7 +46,7 @@ class ReferenceNode(Node):
         path_file = self.declare_parameter('path_file', '').value
         map_file = self.declare_parameter('map_file', '').value
         params = load_reference_params(os.path.join(cfg, 'reference.yaml'))
-        path = load_path_for(cfg, scenario, path_file)
+        path = load_scenario_path(cfg, scenario, path_file)
         eqmap = load_map(cfg, scenario, map_file)
         params = replace(params, radius_min=max(params.radius_min, float(eqmap.radius[0])),
                          radius_max=min(params.radius_max, float(eqmap.radius[-1])))
