@@ -6,9 +6,10 @@ a reaction delay (the driver acts on what happened ``reaction_delay`` ago) and a
 neuromuscular lag with a rate limit (limited bandwidth)::
 
     delta = atan((v_y + a r) / v_x) + alpha_F
-    alpha_F = alpha_ff + k_beta (beta - beta_des) - k_r (r - r_des) - k_e e_y - k_psi psi_err
+    alpha_F = alpha_ff + w k_beta (beta - beta_des) - k_r (r - r_des) - k_e e_y - k_psi psi_err
 
-with ``alpha_ff`` the linear front slip angle that carries the axle's share of ``m V^2 K``, and
+with ``w = min(1, |beta_des| / beta_drift)`` (sideslip is a target only in a drift),
+``alpha_ff`` the linear front slip angle that carries the axle's share of ``m V^2 K``, and
 ``beta_des``, ``r_des = V K`` from the path (``Path.beta_at``, its curvature). The law is odd in
 (beta, r, e_y, K), so left and right drifts are mirror images.
 """
@@ -38,6 +39,7 @@ class DriverParams:
     k_e: float              # [rad/m]
     k_psi: float            # [rad/rad]
     alpha_max: float        # [rad]
+    beta_drift: float       # desired |beta| from which the sideslip feedback is at full gain [rad]
     m: float                # [kg]
     a: float                # [m]
     L: float                # [m]
@@ -45,7 +47,7 @@ class DriverParams:
 
     def __post_init__(self):
         require(self.reaction_delay >= 0, 'driver.reaction_delay', 'must be >= 0')
-        for name in ('bandwidth', 'rate_max', 'alpha_max', 'm', 'a', 'L', 'C_F'):
+        for name in ('bandwidth', 'rate_max', 'alpha_max', 'beta_drift', 'm', 'a', 'L', 'C_F'):
             require(getattr(self, name) > 0, f'driver.{name}', 'must be positive')
 
 
@@ -72,11 +74,11 @@ class Driver:
         self.frenet = Frenet(path)
         self.reset()
 
-    def reset(self, delta: float = 0.0) -> None:
-        """Forget the past; hands at ``delta`` [rad]."""
-        self.frenet.reset()
-        n = max(int(round(self.p.reaction_delay / self.dt)), 0) + 1
-        self._seen = deque(maxlen=n)
+    def reset(self, delta: float = 0.0, s: float | None = None) -> None:
+        """Forget the past; hands at ``delta`` [rad], car near arc length ``s`` [m]."""
+        self.frenet.reset(s)
+        n = max(int(round(self.p.reaction_delay / self.dt)), 0)
+        self._seen = deque([delta] * n, maxlen=n + 1)   # intents not yet acted on
         self.delta = delta
 
     def intent(self, state: VehicleState) -> float:
@@ -87,7 +89,10 @@ class Driver:
         V = max(state.V, 1.0)
         beta_des = -math.copysign(float(self.path.beta_at(fp.s)), K) if K != 0.0 else 0.0
         alpha_ff = p.m * (p.L - p.a) / p.L * V * V * K / p.C_F
-        alpha = (alpha_ff + p.k_beta * (state.beta - beta_des) - p.k_r * (state.r - V * K)
+        # sideslip is a target only in a drift; in grip it follows from speed and radius
+        w_drift = min(1.0, abs(beta_des) / p.beta_drift)
+        alpha = (alpha_ff + w_drift * p.k_beta * (state.beta - beta_des)
+                 - p.k_r * (state.r - V * K)
                  - p.k_e * fp.e_y - p.k_psi * fp.heading_error)
         alpha = float(np.clip(alpha, -p.alpha_max, p.alpha_max))
         vx = max(state.vx, 1.0)

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path as FsPath
 from typing import Any, Literal
 
+import numpy as np
+
 from drift_control.params import (ParamError, config_dir, from_dict, load_surface, load_yaml,
                                   require)
 from drift_control.path import Path, load_path
@@ -169,8 +171,11 @@ def initial_pose(scenario: Scenario, path: Path, wheelbase: float) -> dict:
     s = ini.s
     K = float(path.curvature_at(s))
     psi = float(path.heading_at(s))
-    x0 = float(path._interp(path.x, s)) - ini.e_y * math.sin(psi)
-    y0 = float(path._interp(path.y, s)) + ini.e_y * math.cos(psi)
+    grid = np.arange(path.n + int(path.closed)) * path.ds
+    xs, ys = (np.append(a, a[0]) if path.closed else a for a in (path.x, path.y))
+    u = float(path.lap_position(s))
+    x0 = float(np.interp(u, grid, xs)) - ini.e_y * math.sin(psi)
+    y0 = float(np.interp(u, grid, ys)) + ini.e_y * math.cos(psi)
     beta = math.radians(ini.beta_deg)
     turning = 1.0 if ini.yaw_rate_from_path else 0.0
     return dict(V=ini.V, beta=beta, r=turning * ini.V * K, x=x0, y=y0,

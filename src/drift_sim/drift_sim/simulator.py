@@ -75,9 +75,9 @@ class Simulator:
         start = initial_pose(self.scenario, self.loaded.path, self.loaded.plant.body.L)
         self.plant.set_mu(self.scenario.mu)
         self.state = self.plant.reset(**start)
-        self._frenet.reset()
+        self._frenet.reset(self.scenario.initial.s)
         if self.driver is not None:
-            self.driver.reset(start['delta'])
+            self.driver.reset(start['delta'], self.scenario.initial.s)
         self._last = Command(0.0, start['delta'], 0.0, start['drive_torque'], Mode.FULL)
         self._delta_request = start['delta']
         self.commands_lost = 0

@@ -1,0 +1,59 @@
+"""Lock-step pacing: the simulator advances only when the controller's command has arrived.
+
+The controller runs on sim time at ``command_period`` (the NMPC's 20 ms): at every multiple of
+it, from ``command_period`` on, the step waits for a command stamped at or after the current sim
+time. A wait longer than ``timeout`` (wall clock) advances anyway with the held command and is
+counted in ``timeouts`` -- reported, never silent. The first command may take ``startup_timeout``
+(controllers build their solvers on start-up).
+"""
+from __future__ import annotations
+
+from drift_control.signals import Command
+
+
+class LockstepGate:
+    """Decides whether the simulator may take its next step.
+
+    Parameters
+    ----------
+    dt : float
+        Simulator step [s].
+    command_period : float
+        Controller period in sim time [s].
+    timeout : float
+        Longest wall-clock wait for a command once the controller is running [s].
+    startup_timeout : float
+        Longest wall-clock wait for the very first command [s].
+    """
+
+    def __init__(self, dt: float, command_period: float, timeout: float,
+                 startup_timeout: float):
+        self.dt, self.timeout, self.startup_timeout = dt, timeout, startup_timeout
+        self.every = max(1, int(round(command_period / dt)))
+        self.command: Command | None = None
+        self.timeouts = 0
+        self._wait_since: float | None = None
+
+    def offer(self, command: Command) -> None:
+        """A command arrived."""
+        self.command = command
+
+    def expects(self, t: float) -> bool:
+        """A command for sim time ``t`` [s] is due before stepping on."""
+        k = int(round(t / self.dt))
+        return k >= self.every and k % self.every == 0
+
+    def ready(self, t: float, wall: float) -> bool:
+        """May the simulator step from sim time ``t``? ``wall`` is a monotonic clock [s]."""
+        if not self.expects(t) or (self.command is not None
+                                   and self.command.stamp >= t - 0.5 * self.dt):
+            self._wait_since = None
+            return True
+        if self._wait_since is None:
+            self._wait_since = wall
+        limit = self.timeout if self.command is not None else self.startup_timeout
+        if wall - self._wait_since > limit:
+            self.timeouts += 1
+            self._wait_since = None
+            return True
+        return False

@@ -1,0 +1,92 @@
+"""Sim node: the plant as a car on the network -- vehicle/state out every 10 ms, drift/command in."""
+import time
+
+import rclpy
+from drift_msgs.msg import DriftCommand, VehicleState
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+from drift_control.nodes import convert
+from drift_control.params import config_dir
+from drift_sim.lockstep import LockstepGate
+from drift_sim.scenario import load_scenario
+from drift_sim.simulator import Simulator
+
+
+class SimNode(Node):
+    """Steps the simulator in real time, or in lock-step with the controller on sim time."""
+
+    def __init__(self):
+        super().__init__('sim')
+        cfg = self.declare_parameter('config_dir', str(config_dir())).value
+        scenario = self.declare_parameter('scenario', 'steady_dry').value
+        seed = self.declare_parameter('seed', -1).value
+        self._mode = self.declare_parameter('clock_mode', 'realtime').value
+        overrides = self.declare_parameter('set', ['']).value
+        period = self.declare_parameter('command_period', 0.02).value
+        timeout = self.declare_parameter('lockstep_timeout', 1.0).value
+        startup = self.declare_parameter('startup_timeout', 120.0).value
+        if self._mode not in ('realtime', 'lockstep'):
+            raise ValueError(f"clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
+        loaded = load_scenario(scenario, [o for o in overrides if o], cfg,
+                               seed=None if seed < 0 else seed)
+        self._sim = Simulator(loaded)
+        self._gate = LockstepGate(self._sim.dt, period, timeout, startup)
+        self._command = None
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
+        self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
+        self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
+        self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable)
+        self._publish(self._sim.state)
+        tick = self._sim.dt if self._mode == 'realtime' else 0.001
+        self.create_timer(tick, self._on_tick)
+        self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), seed '
+                               f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
+
+    def _on_command(self, msg):
+        self._command = convert.command_from_msg(msg)
+        self._gate.offer(self._command)
+
+    def _on_tick(self):
+        if self._sim.done:
+            return
+        if self._mode == 'lockstep':
+            if not self._gate.ready(self._sim.t, time.monotonic()):
+                return
+            if self._gate.timeouts and self._gate.timeouts != getattr(self, '_reported', 0):
+                self._reported = self._gate.timeouts
+                self.get_logger().warning(f'lockstep: no command for t={self._sim.t:.2f} s '
+                                          f'({self._gate.timeouts} timeouts); stepping on')
+        self._publish(self._sim.step(self._command))
+
+    def _publish(self, state):
+        if self._mode == 'lockstep':
+            stamp = self._sim.t
+            self._state_pub.publish(convert.state_to_msg(state, stamp))
+            self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
+            self._clock_pub.publish(Clock(clock=convert.time_to_msg(stamp)))
+        else:
+            now = self.get_clock().now()
+            self._state_pub.publish(convert.state_to_msg(state, now))
+            self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, now))
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
