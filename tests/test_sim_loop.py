@@ -47,7 +47,8 @@ def test_gate_waits_for_the_command_of_the_step_and_reports_timeouts():
 
 
 def test_driver_steers_through_its_reaction_delay():
-    loaded = load_scenario('semi_auto_dry')
+    drift_circle = 'path={type: circle, radius: 15.0, sideslip: {beta_deg: 30.0}}'
+    loaded = load_scenario('semi_auto_dry', [drift_circle])
     p = load_driver_params(loaded.driver_raw)
     sim = Simulator(loaded)
     driver = Driver(p, loaded.path, sim.dt)
@@ -56,10 +57,10 @@ def test_driver_steers_through_its_reaction_delay():
     driver.reset(driver.intent(state), s=0.0)
     base = driver.delta
     n = int(round(p.reaction_delay / sim.dt))
-    skidding = dataclasses.replace(state, beta=-0.4)
+    skidding = dataclasses.replace(state, beta=-0.8)   # beyond the desired -30 deg
     outs = [driver.steer(skidding)[0] for _ in range(n + 10)]
     assert max(abs(o - base) for o in outs[:n]) < 1e-9, 'no reaction before the delay'
-    assert outs[-1] < base - 0.02, 'then it counter-steers against a growing left sideslip'
+    assert outs[-1] < base - 0.02, 'then it counter-steers more against too much left sideslip'
 
 
 def test_torque_only_scenario_steers_by_the_driver_and_stays_on_a_grip_circle():
@@ -78,7 +79,7 @@ def test_torque_only_scenario_steers_by_the_driver_and_stays_on_a_grip_circle():
 def test_metrics_on_synthetic_series():
     t = np.arange(0.0, 10.0, 0.01)
     beta_ref = np.full_like(t, -0.5)
-    beta = beta_ref + 0.02 * np.sin(t)
+    beta = beta_ref + 0.02 * np.sin(2.0 * np.pi * t)
     assert metrics.beta_rms_error(t, beta, beta_ref, [(0, 10)]) == pytest.approx(
         0.02 / math.sqrt(2), rel=0.02)
     assert metrics.time_in_drift(t, beta, math.radians(10)) == pytest.approx(10.0, abs=0.02)
