@@ -1,0 +1,250 @@
+"""The drift NMPC (paper section IV): one OCP solve per control period, safe output always.
+
+``Nmpc.step(state, ref, now)`` turns the latest vehicle state and equilibrium reference into an
+actuator command. The OCP and its solvers live in ``ocp.py`` and ``ocp_solvers.py``; this module
+owns what happens around a solve: input checks (missing, stale, non-finite, invalid), warm start
+by shifting the previous solution, the shifted plan after a failed solve, and the safe fallback
+(torque ramped down, steering rate-limited toward the reference) after repeated failures.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from drift_control.ocp import NREF, NS, NXO, S_T_LAST, NmpcParams, Ocp
+from drift_control.ocp_solvers import make_solver
+from drift_control.params import VehicleParams
+from drift_control.signals import Command, Mode, Reference, Validity, VehicleState
+from drift_control.vehicle import U, X
+
+log = logging.getLogger(__name__)
+
+STATE_NAMES = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta')
+INPUT_NAMES = ('delta_dot', 'T_R')
+
+
+class NmpcStatus(IntEnum):
+    """Outcome of one cycle; same values as NmpcStatus.msg ``STATUS_*``."""
+
+    OK = 0          # solved; command from this solution
+    SHIFTED = 1     # solve failed or input bad; command from the shifted previous solution
+    FALLBACK = 2    # safe fallback active
+    NO_INPUT = 3    # nothing to act on yet (no valid state since start): actuators released
+
+
+@dataclass(frozen=True)
+class NmpcResult:
+    """What one ``Nmpc.step`` returns; the node publishes status from this, not the solver.
+
+    ``predicted_states`` is (N+1, 6) in ``STATE_NAMES`` order, ``predicted_inputs`` (N, 2) in
+    ``INPUT_NAMES`` order; both are empty in fallback.
+    """
+
+    command: Command
+    solved: bool
+    status: NmpcStatus
+    solve_time_s: float
+    iterations: int
+    cost: float
+    predicted_states: np.ndarray
+    predicted_inputs: np.ndarray
+    message: str
+    consecutive_failures: int = 0
+
+
+class Nmpc:
+    """Nonlinear MPC that tracks drift equilibria with steering rate and rear drive torque.
+
+    Parameters
+    ----------
+    vehicle_params : VehicleParams
+        The controller's model of the car.
+    nmpc_params : NmpcParams
+        Horizon, cost, bounds, solver and safety settings (``config/nmpc.yaml``).
+    mode : Mode
+        ``Mode.FULL`` (steering and torque) or ``Mode.TORQUE_ONLY`` (the driver steers; the
+        measured steering is the applied one, ``command.delta`` is the NMPC's proposal).
+    mu : float
+        Surface friction coefficient [-], a runtime parameter (see ``mu`` attribute).
+    """
+
+    def __init__(self, vehicle_params: VehicleParams, nmpc_params: NmpcParams,
+                 mode: Mode = Mode.FULL, mu: float = 1.0):
+        if mode not in (Mode.FULL, Mode.TORQUE_ONLY):
+            raise ValueError(f'mode must be FULL or TORQUE_ONLY, got {mode!r}')
+        self.params, self.mode, self.mu = nmpc_params, Mode(mode), float(mu)
+        self.ocp = Ocp(vehicle_params, nmpc_params)
+        self.bounds = self.ocp.bounds
+        self._solver = make_solver(self.ocp, nmpc_params.solver)
+        self._hold = nmpc_params.torque_only_hold_stages if mode == Mode.TORQUE_ONLY else 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the previous solution, failures and commands (e.g. on re-engagement)."""
+        self._w: np.ndarray | None = None   # last accepted solution
+        self._age = 0                        # cycles since that solution
+        self._failures = 0
+        self._last: Command | None = None
+
+    # --- one cycle -----------------------------------------------------------------------------
+    def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
+        """One control cycle at time ``now`` [s] (the clock of the state and reference stamps)."""
+        problem = self._input_problem(state, ref, now)
+        if problem is None:
+            result = self._solve(state, ref, now)
+        else:
+            result = self._failed(state, ref, now, problem, solve_time=0.0, iterations=0)
+        self._last = result.command
+        return result
+
+    def _input_problem(self, state, ref, now) -> str | None:
+        """Why the inputs cannot be used, or None."""
+        age = self.params.max_input_age
+        if state is None:
+            return 'no vehicle state'
+        if not state.is_finite():
+            return 'vehicle state not finite'
+        if not state.has(Validity.CONTROL):
+            return f'vehicle state invalid (validity {state.validity:#x})'
+        if not abs(now - state.stamp) <= age:
+            return f'vehicle state stale ({now - state.stamp:.3f} s old)'
+        if ref is None:
+            return 'no reference'
+        if not ref.is_finite():
+            return 'reference not finite'
+        if not abs(now - ref.stamp) <= age:
+            return f'reference stale ({now - ref.stamp:.3f} s old)'
+        return None
+
+    def _solve(self, state: VehicleState, ref: Reference, now: float) -> NmpcResult:
+        ocp, N = self.ocp, self.params.N
+        T_last = self._last.drive_torque if self._last is not None else (
+            state.drive_torque if state.has(Validity.DRIVE_TORQUE) else ref.target.T_R)
+        x_init = np.array([state.V, state.beta, state.r, state.omega_F, state.omega_R,
+                           state.delta, T_last])
+        x_init = ocp.clip_initial_state(x_init)
+        x_init[S_T_LAST] = np.clip(x_init[S_T_LAST], self.bounds.T_R_min, self.bounds.T_R_max)
+        p = ocp.pack_params(reference_rows(ref, N), self.mu)
+        lbw, ubw = ocp.bounds_for(x_init, self._hold)
+        if self._w is None:
+            w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
+        else:
+            w0, iterations = self._shifted(self._w, 1), self.params.solver.max_iter
+        w0[:NS] = x_init
+        t0 = time.perf_counter()
+        try:
+            out = self._solver.solve(w0, p, lbw, ubw, iterations)
+            error = None if out.success else f'solver: {out.status}'
+        except Exception as err:   # a solver exception is a failed cycle, never a crash
+            out, error = None, f'solver raised {type(err).__name__}: {err}'
+        solve_time = time.perf_counter() - t0
+        if error is None and not np.all(np.isfinite(out.w)):
+            error = 'solver returned non-finite values'
+        if error is not None:
+            return self._failed(state, ref, now, error, solve_time, out.iterations if out else 0)
+        self._w, self._age, self._failures = out.w, 0, 0
+        X_pred, U_pred = ocp.split(out.w)
+        command = self._command_from_plan(X_pred, U_pred, 0, now)
+        return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
+                          X_pred[:, :NXO], U_pred, str(out.status))
+
+    # --- warm start and failures -----------------------------------------------------------
+    def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
+        """Hold the initial state over the horizon, inputs at the reference torque."""
+        N = self.params.N
+        T = np.clip(ref.target.T_R, self.bounds.T_R_min, self.bounds.T_R_max)
+        states = np.tile(x_init, (N + 1, 1))
+        states[1:, S_T_LAST] = T
+        return self.ocp.join(states, np.tile([0.0, T], (N, 1)))
+
+    def _shifted(self, w, shift: int) -> np.ndarray:
+        """The solution ``shift`` stages later; the last stage is repeated."""
+        states, inputs = self.ocp.split(w)
+        n = self.params.N
+        idx_x = np.minimum(np.arange(n + 1) + shift, n)
+        idx_u = np.minimum(np.arange(n) + shift, n - 1)
+        return self.ocp.join(states[idx_x], inputs[idx_u])
+
+    def _failed(self, state, ref, now, reason: str, solve_time: float,
+                iterations: int) -> NmpcResult:
+        """A cycle without a usable solution: the shifted plan while it lasts, then fallback."""
+        self._failures += 1
+        N = self.params.N
+        if self._w is not None and self._failures <= self.params.max_failures \
+                and self._age + 1 < N - self._hold:
+            self._age += 1
+            X_pred, U_pred = self.ocp.split(self._shifted(self._w, self._age))
+            command = self._command_from_plan(X_pred, U_pred, 0, now)
+            return NmpcResult(command, False, NmpcStatus.SHIFTED, solve_time, iterations,
+                              math.nan, X_pred[:, :NXO], U_pred,
+                              f'{reason}; shifted plan ({self._age})', self._failures)
+        if self._last is None:   # never acted: keep the actuators released
+            delta = state.delta if state is not None and math.isfinite(state.delta) else 0.0
+            command = Command(now, self._clip_delta(delta), 0.0, 0.0, Mode.OFF)
+            return NmpcResult(command, False, NmpcStatus.NO_INPUT, solve_time, iterations,
+                              math.nan, np.zeros((0, NXO)), np.zeros((0, 2)), reason,
+                              self._failures)
+        if self._w is not None:
+            log.warning('NMPC fallback: %s', reason)
+        self._w = None   # the old plan is no longer a warm start; the next solve starts cold
+        command = self._fallback_command(ref, now)
+        return NmpcResult(command, False, NmpcStatus.FALLBACK, solve_time, iterations, math.nan,
+                          np.zeros((0, NXO)), np.zeros((0, 2)), f'fallback: {reason}',
+                          self._failures)
+
+    def _fallback_command(self, ref: Reference | None, now: float) -> Command:
+        """Torque ramped toward zero, steering rate-limited toward the reference steering."""
+        Ts, p = self.params.Ts, self.params
+        last = self._last
+        target = ref.target.delta if ref is not None and ref.is_finite() else last.delta
+        target = self._clip_delta(target)
+        step = float(np.clip(target - last.delta, -p.fallback_delta_rate * Ts,
+                             p.fallback_delta_rate * Ts))
+        T_step = p.fallback_torque_rate * Ts
+        torque = float(np.clip(last.drive_torque, -T_step, T_step))   # distance left to zero
+        torque = last.drive_torque - torque
+        return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
+
+    # --- output ---------------------------------------------------------------------------------
+    def _command_from_plan(self, X_pred, U_pred, j: int, now: float) -> Command:
+        """Command of plan stage ``j``: torque now; steering (proposal in TORQUE_ONLY) next."""
+        k = min(j + self._hold, self.params.N - 1)
+        return self._safe(Command(now, float(X_pred[k + 1, X.DELTA]),
+                                  float(U_pred[k, U.DELTA_DOT]), float(U_pred[j, U.T_R]),
+                                  self.mode))
+
+    def _clip_delta(self, delta: float) -> float:
+        return float(np.clip(delta, -self.bounds.delta_max, self.bounds.delta_max))
+
+    def _safe(self, c: Command) -> Command:
+        """Clip to the bounds; a non-finite value is replaced by a safe one (hold, zero)."""
+        b = self.bounds
+        hold = self._last.delta if self._last is not None else 0.0
+        delta = c.delta if math.isfinite(c.delta) else hold
+        rate = c.delta_rate if math.isfinite(c.delta_rate) else 0.0
+        torque = c.drive_torque if math.isfinite(c.drive_torque) else 0.0
+        return Command(c.stamp, self._clip_delta(delta),
+                       float(np.clip(rate, -b.delta_dot_max, b.delta_dot_max)),
+                       float(np.clip(torque, b.T_R_min, b.T_R_max)), c.mode)
+
+    @property
+    def consecutive_failures(self) -> int:
+        """Cycles since the last accepted solution."""
+        return self._failures
+
+
+def reference_rows(ref: Reference, N: int) -> np.ndarray:
+    """(N+1, 7) reference rows: ``ref.horizon`` per stage (padded with its last), else the target."""
+    rows = [ref.horizon[min(k, len(ref.horizon) - 1)] if ref.horizon else ref.target
+            for k in range(N + 1)]
+    out = np.array([[e.V, e.beta, e.r, e.omega_F, e.omega_R, e.delta, e.T_R] for e in rows])
+    assert out.shape == (N + 1, NREF)
+    return out
+
+
+__all__ = ['INPUT_NAMES', 'STATE_NAMES', 'Nmpc', 'NmpcResult', 'NmpcStatus', 'reference_rows']

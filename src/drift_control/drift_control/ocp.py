@@ -1,0 +1,285 @@
+"""The NMPC's optimal control problem (paper section IV, Eq. 5): parameters, NLP and bounds.
+
+Multiple shooting on the vehicle states of the single-track model (``vehicle.rhs``, RK4 with
+substeps per stage); the path states are left out, path following is the reference selector's
+job. The OCP state adds the torque of the previous stage, ``T_last`` (``T_last+ = T_R``), so the
+torque-rate penalty stays stage-wise and the QP keeps the OCP block structure HPIPM needs.
+Decision vector, stage-interleaved for the structure-exploiting solvers::
+
+    w = [x_0, u_0, x_1, u_1, ..., x_{N-1}, u_{N-1}, x_N]
+    x = (V, beta, r, omega_F, omega_R, delta, T_last),  u = (delta_dot, T_R)
+
+``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
+mu]``, so one compiled solver serves every reference, surface and mode. Every cost term is a squared residual
+``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector directly.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+import casadi as ca
+import numpy as np
+
+from drift_control.params import ParamError, VehicleParams, from_dict, load_yaml, require
+from drift_control.vehicle import N_VEHICLE, NTHETA, NU, U, X, VehicleModel, rk4_step
+
+NXO = N_VEHICLE            # vehicle states in the OCP: V, beta, r, omega_F, omega_R, delta
+NS = NXO + 1               # OCP state: the vehicle states and T_last
+S_T_LAST = NXO             # index of T_last in an OCP state
+NREF = 7                   # one Equilibrium: V, beta, r, omega_F, omega_R, delta, T_R
+REF_T_R = 6                # index of T_R in one reference row
+
+
+@dataclass(frozen=True)
+class CostScales:
+    """Error of unit cost for each term; each stage cost term is ``(error / scale)^2``.
+
+    A smaller scale weighs a term more. State errors are to the equilibrium reference.
+    """
+
+    V: float = 3.0              # speed [m/s]
+    beta: float = 0.01          # sideslip [rad]
+    r: float = 0.02             # yaw rate [rad/s]
+    omega_F: float = 20.0       # front wheel speed [rad/s]
+    omega_R: float = 10.0       # rear wheel speed [rad/s]
+    delta: float = 0.3          # steering angle [rad] (weak pull to the equilibrium steering)
+    T_R: float = 3000.0         # drive torque to the equilibrium torque [Nm] (regularisation)
+    delta_dot: float = 0.5      # steering rate [rad/s]
+    T_R_rate: float = 20000.0   # drive torque rate [Nm/s]
+    terminal_factor: float = 5.0   # terminal state cost = factor x stage state cost [-]
+
+    def __post_init__(self):
+        for name, value in self.__dict__.items():
+            require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
+
+
+@dataclass(frozen=True)
+class NmpcLimits:
+    """Optional tighter bounds than ``VehicleParams.limits``; the tighter of the two is used."""
+
+    delta_max: float = math.inf       # [rad]
+    delta_dot_max: float = math.inf   # [rad/s]
+    T_R_min: float = -math.inf        # [Nm]
+    T_R_max: float = math.inf         # [Nm]
+
+
+@dataclass(frozen=True)
+class SolverParams:
+    """Which solver runs the OCP, and how.
+
+    ``method``: 'rti' = Gauss-Newton SQP with ``max_iter`` QPs per step (1 = real-time
+    iteration), QP solver ``qp_solver``; 'sqp' = casadi sqpmethod (exact Hessian) with
+    ``qp_solver``; 'ipopt'; 'fatrop'. ``codegen``: compile the problem's functions with gcc,
+    cached under ``codegen_dir`` (relative to the repository), interpreted when gcc is missing.
+    """
+
+    method: Literal['rti', 'sqp', 'ipopt', 'fatrop'] = 'rti'
+    qp_solver: Literal['qrqp', 'osqp', 'hpipm', 'qpoases'] = 'hpipm'
+    max_iter: int = 1              # SQP / GN iterations per control step
+    cold_start_iter: int = 10      # iterations of the first solve (no warm start yet)
+    tol: float = 1e-6              # NLP tolerance (sqp, ipopt, fatrop) / GN step norm (rti)
+    codegen: bool = True
+    codegen_dir: str = '.codegen'
+    gcc_flags: tuple[str, ...] = ('-O2',)
+
+    def __post_init__(self):
+        require(self.max_iter >= 1, 'nmpc.solver.max_iter', 'must be >= 1')
+        require(self.cold_start_iter >= 1, 'nmpc.solver.cold_start_iter', 'must be >= 1')
+
+
+@dataclass(frozen=True)
+class NmpcParams:
+    """Everything the NMPC reads from ``config/nmpc.yaml``."""
+
+    N: int = 25                     # stages [-]
+    Ts: float = 0.02                # stage length and control period [s]
+    substeps: int = 2               # RK4 substeps per stage [-]
+    front_wheel: Literal['dynamic', 'free_rolling'] = 'free_rolling'
+    load_passes: int = 1            # quasi-static load transfer passes of the model [-]
+    cost: CostScales = field(default_factory=CostScales)
+    limits: NmpcLimits = field(default_factory=NmpcLimits)
+    solver: SolverParams = field(default_factory=SolverParams)
+    max_input_age: float = 0.05     # state / reference older than this are stale [s]
+    max_failures: int = 3           # consecutive failures served by the shifted plan [-]
+    fallback_torque_rate: float = 3000.0   # torque ramp-down rate in fallback [Nm/s]
+    fallback_delta_rate: float = 0.3       # steering rate toward the reference delta [rad/s]
+    torque_only_hold_stages: int = 1       # TORQUE_ONLY: stages the driver is assumed to hold
+
+    def __post_init__(self):
+        require(self.N >= 2, 'nmpc.N', 'must be >= 2')
+        require(self.Ts > 0, 'nmpc.Ts', 'must be positive')
+        require(self.substeps >= 1, 'nmpc.substeps', 'must be >= 1')
+        require(self.max_input_age > 0, 'nmpc.max_input_age', 'must be positive')
+        require(self.max_failures >= 0, 'nmpc.max_failures', 'must be >= 0')
+        require(self.fallback_torque_rate > 0 and self.fallback_delta_rate > 0, 'nmpc.fallback_*',
+                'rates must be positive')
+        require(0 <= self.torque_only_hold_stages < self.N, 'nmpc.torque_only_hold_stages',
+                'must be in [0, N)')
+
+
+def load_nmpc_params(path=None) -> NmpcParams:
+    """Load ``config/nmpc.yaml`` (or ``path``); a wrong key is a ParamError naming it."""
+    from pathlib import Path
+
+    from drift_control.params import config_dir
+    path = Path(path) if path else config_dir() / 'nmpc.yaml'
+    return from_dict(NmpcParams, load_yaml(path), path.stem)
+
+
+class Bounds(NamedTuple):
+    """Effective actuator bounds: the tighter of vehicle and NMPC limits."""
+
+    delta_max: float
+    delta_dot_max: float
+    T_R_min: float
+    T_R_max: float
+
+
+def effective_bounds(vehicle: VehicleParams, params: NmpcParams) -> Bounds:
+    """Tighter of ``vehicle.limits`` and ``params.limits``."""
+    v, n = vehicle.limits, params.limits
+    b = Bounds(min(v.delta_max, n.delta_max), min(v.delta_dot_max, n.delta_dot_max),
+               max(v.T_R_min, n.T_R_min), min(v.T_R_max, n.T_R_max))
+    if not b.T_R_min < b.T_R_max:
+        raise ParamError(f'nmpc.limits: empty torque range [{b.T_R_min}, {b.T_R_max}]')
+    return b
+
+
+class Ocp:
+    """The multiple-shooting NLP as casadi SX expressions, plus packing and bounds helpers.
+
+    Attributes
+    ----------
+    w, p : casadi.SX
+        Decision and parameter vectors.
+    residual : casadi.SX
+        Cost residuals; the objective is ``J = sum(residual**2)``.
+    J : casadi.SX
+        Objective. The equality constraints are ``gaps(w, p) = 0``.
+    F : casadi.Function
+        One shooting stage, RK4 with ``substeps`` on ``vehicle.rhs``.
+    """
+
+    def __init__(self, vehicle: VehicleParams, params: NmpcParams):
+        self.vehicle, self.params = vehicle, params
+        self.bounds = effective_bounds(vehicle, params)
+        N, nz = params.N, NS + NU
+        self.N, self.nw = N, N * nz + NS
+        self.np = (N + 1) * NREF + 1
+        model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
+        self.model = model
+        xs, us, mu_s = ca.SX.sym('x', NS), ca.SX.sym('u', NU), ca.SX.sym('mu')
+        # the OCP integrates the first N_VEHICLE model states; path states do not feed back, so
+        # they are held at zero and their derivatives dropped
+        x9, th = ca.SX.sym('x9', len(X)), ca.SX.sym('theta', NTHETA)
+        f_pad = ca.Function('f_pad', [x9, us, th], [ca.vertcat(model.f(x9, us, th)[:NXO],
+                                                              ca.SX.zeros(len(X) - NXO))])
+        theta = ca.vertcat(0.0, mu_s)   # curvature unused: no path states in the OCP
+        x_end = rk4_step(f_pad, ca.vertcat(xs[:NXO], ca.SX.zeros(len(X) - NXO)), us, theta,
+                         params.Ts, params.substeps)[:NXO]
+        #: one stage, ``F(x, u, mu) -> x_next`` on the OCP state (T_last+ = T_R)
+        self.F = ca.Function('F', [xs, us, mu_s], [ca.vertcat(x_end, us[U.T_R])],
+                             ['x', 'u', 'mu'], ['x_next'])
+
+        self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
+        refs, _ = self.unpack_params(self.p)
+        c = params.cost
+        state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
+        res = []
+        for k in range(N):   # every residual is linear in w: the GN Hessian is constant
+            xk, uk = self.x(self.w, k), self.u(self.w, k)
+            res.append(uk[U.DELTA_DOT] / c.delta_dot)
+            res.append((uk[U.T_R] - xk[S_T_LAST]) / (c.T_R_rate * params.Ts))
+            res.append((uk[U.T_R] - refs[k][REF_T_R]) / c.T_R)
+            if k > 0:   # x_0 is fixed: its cost is a constant
+                res.append((xk[:NXO] - refs[k][:NXO]) / state_scale)
+        term = math.sqrt(c.terminal_factor)
+        res.append(term * (self.x(self.w, N)[:NXO] - refs[N][:NXO]) / state_scale)
+        self.residual = ca.vertcat(*res)
+        self.J = ca.sumsqr(self.residual)
+
+    def gaps(self, w, p):
+        """Shooting gaps ``F(x_k, u_k, mu) - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u - x+``).
+
+        ``w`` and ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small
+        generated code).
+        """
+        nz = NS + NU
+        body = ca.reshape(w[:self.N * nz], nz, self.N)
+        x_next = self.F.map(self.N)(body[:NS, :], body[NS:, :], p[self.np - 1])
+        x_after = ca.horzcat(body[:NS, 1:], w[self.N * nz:])
+        return ca.vec(x_next - x_after)
+
+    # --- layout -------------------------------------------------------------------------------
+    def state_scale(self) -> np.ndarray:
+        """Typical magnitudes of one OCP state (V, beta, r, omega_F, omega_R, delta, T_last)."""
+        return np.array([10.0, 0.5, 0.5, 30.0, 30.0, 0.3, 1000.0])
+
+    def variable_scale(self) -> np.ndarray:
+        """Typical magnitudes of every entry of ``w``, for solver scaling."""
+        stage = np.concatenate([self.state_scale(), [1.0, 1000.0]])
+        return np.concatenate([np.tile(stage, self.N), self.state_scale()])
+
+    def x(self, w, k: int):
+        """State of stage ``k`` in ``w`` (symbolic or numeric)."""
+        i = k * (NS + NU)
+        return w[i:i + NS]
+
+    def u(self, w, k: int):
+        """Input of stage ``k`` in ``w``."""
+        i = k * (NS + NU) + NS
+        return w[i:i + NU]
+
+    def split(self, w) -> tuple[np.ndarray, np.ndarray]:
+        """Numeric ``w`` -> OCP states (N+1, 7) and inputs (N, 2)."""
+        w = np.asarray(w, dtype=float).ravel()
+        body = w[:-NS].reshape(self.N, NS + NU)
+        return np.vstack([body[:, :NS], w[-NS:]]), body[:, NS:].copy()
+
+    def join(self, states, inputs) -> np.ndarray:
+        """OCP states (N+1, 7) and inputs (N, 2) -> ``w``."""
+        body = np.hstack([np.asarray(states)[:-1], np.asarray(inputs)])
+        return np.concatenate([body.ravel(), np.asarray(states)[-1]])
+
+    def unpack_params(self, p):
+        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu)."""
+        refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
+        return refs, p[self.np - 1]
+
+    def pack_params(self, refs, mu: float) -> np.ndarray:
+        """Numeric parameter vector; ``refs`` is (N+1, 7) in Equilibrium field order."""
+        refs = np.asarray(refs, dtype=float)
+        if refs.shape != (self.N + 1, NREF):
+            raise ValueError(f'refs must be ({self.N + 1}, {NREF}), got {refs.shape}')
+        return np.concatenate([refs.ravel(), [mu]])
+
+    def bounds_for(self, x_init, hold_stages: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (7: with T_last), delta, delta_dot, T_R limited.
+
+        ``hold_stages`` first stages get ``delta_dot = 0`` (a driver who holds the wheel).
+        """
+        b = self.bounds
+        lb, ub = np.full(self.nw, -np.inf), np.full(self.nw, np.inf)
+        nz = NS + NU
+        for k in range(self.N + 1):
+            lb[k * nz + X.DELTA], ub[k * nz + X.DELTA] = -b.delta_max, b.delta_max
+        for k in range(self.N):
+            i = k * nz + NS
+            hold = k < hold_stages
+            lb[i + U.DELTA_DOT] = 0.0 if hold else -b.delta_dot_max
+            ub[i + U.DELTA_DOT] = 0.0 if hold else b.delta_dot_max
+            lb[i + U.T_R], ub[i + U.T_R] = b.T_R_min, b.T_R_max
+        lb[:NS] = ub[:NS] = x_init
+        return lb, ub
+
+    def clip_initial_state(self, x_init) -> np.ndarray:
+        """Measured steering beyond the limit is taken at the limit (keeps the QP feasible)."""
+        x = np.array(x_init, dtype=float)
+        x[X.DELTA] = np.clip(x[X.DELTA], -self.bounds.delta_max, self.bounds.delta_max)
+        return x
+
+
+__all__ = ['Bounds', 'CostScales', 'NmpcLimits', 'NmpcParams', 'Ocp', 'SolverParams',
+           'effective_bounds', 'load_nmpc_params', 'NREF', 'NS', 'NXO', 'S_T_LAST']
