@@ -16,13 +16,8 @@ from drift_control.path import load_scenario_path
 from drift_control.reference import ReferenceSelector, load_reference_params
 
 
-def load_map(cfg: str, scenario: str, map_file: str):
-    """The EquilibriumMap of ``map_file`` (else the scenario's); never a made-up map.
-
-    A relative name is taken from the checkout root (the parent of ``config_dir``).
-    """
-    if not map_file and scenario:
-        map_file = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')).get('map_file', '')
+def load_map(cfg: str, map_file: str):
+    """The EquilibriumMap of ``map_file``, relative to the checkout root; never a made-up map."""
     if not map_file:
         raise ParamError('no map_file parameter (nor map_file in the scenario): no equilibria')
     map_file = os.path.join(os.path.dirname(os.path.abspath(cfg)), map_file)
@@ -46,11 +41,13 @@ class ReferenceNode(Node):
         path_file = self.declare_parameter('path_file', '').value
         map_file = self.declare_parameter('map_file', '').value
         params = load_reference_params(os.path.join(cfg, 'reference.yaml'))
+        scen = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')) if scenario else {}
         path = load_scenario_path(cfg, scenario, path_file)
-        eqmap = load_map(cfg, scenario, map_file)
+        eqmap = load_map(cfg, map_file or scen.get('map_file', ''))
         params = replace(params, radius_min=max(params.radius_min, float(eqmap.radius[0])),
                          radius_max=min(params.radius_max, float(eqmap.radius[-1])))
         self._selector = ReferenceSelector(eqmap.lookup, path, params)
+        self._selector.reset(s_hint=(scen.get('initial') or {}).get('s'))  # where paths overlap
         self._state, self._fresh = None, False
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
