@@ -450,7 +450,10 @@ def load_scenario_path(cfg_dir, scenario: str = '', path_file: str = '') -> Path
         path_file = os.path.join(cfg_dir, 'paths', section if section.endswith('.yaml')
                                  else f'{section}.yaml')
     raw = load_yaml(path_file)
-    raw = dict(raw.get('path', raw))
+    raw = raw.get('path', raw)
+    if not isinstance(raw, dict):
+        raise ParamError(f'{path_file}: path: expected a mapping')
+    raw = dict(raw)
     raw.setdefault('name', os.path.splitext(os.path.basename(path_file))[0])
     return load_path(raw, os.path.basename(path_file))
 
