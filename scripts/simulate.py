@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drift_control.params import ParamError, config_dir, load_vehicle
+from drift_control.params import ParamError, config_dir, load_surface, load_vehicle
 from drift_control.reference import ReferenceSelector, load_reference_params
 from drift_control.signals import Command, Mode
 from drift_sim import metrics
@@ -41,21 +41,24 @@ class Feedforward:
 
 
 class NmpcController:
-    """drift_control.nmpc.Nmpc behind the same small interface."""
+    """drift_control.nmpc.Nmpc behind the same small interface.
 
-    def __init__(self, cfg: Path):
-        from drift_control.nmpc import Nmpc   # written in parallel; imported when used
+    The NMPC is told the named surface's nominal mu (config/vehicle/surfaces.yaml), not the
+    scenario's actual one: a ``--set surface.mu=...`` is a friction the controller does not know.
+    """
+
+    def __init__(self, cfg: Path, torque_only: bool, surface: str):
+        from drift_control.nmpc import Nmpc   # imported when used: ROS-free, but heavy
         from drift_control.ocp import load_nmpc_params
-        params = load_nmpc_params(cfg / 'nmpc.yaml') if (cfg / 'nmpc.yaml').is_file() \
-            else load_nmpc_params()
-        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params)
-        self.period = float(getattr(params, 'dt', 0.02))
+        params = load_nmpc_params(cfg / 'nmpc.yaml')
+        mode = Mode.TORQUE_ONLY if torque_only else Mode.FULL
+        mu = load_surface(surface, cfg / 'vehicle' / 'surfaces.yaml').mu
+        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params, mode, mu)
+        self.period = params.Ts
 
     def step(self, state, ref, now):
-        if ref is None:
-            return None, math.nan
         result = self.nmpc.step(state, ref, now)
-        return result.command, float(getattr(result, 'solve_time_s', math.nan))
+        return result.command, result.solve_time_s
 
 
 def run(args) -> dict:
@@ -68,7 +71,8 @@ def run(args) -> dict:
     lookup = load_map(str(cfg.parent / sc.map_file)).lookup
     selector = ReferenceSelector(lookup, loaded.path,
                                  load_reference_params(cfg / 'reference.yaml'))
-    controller = Feedforward() if args.controller == 'feedforward' else NmpcController(cfg)
+    controller = (Feedforward() if args.controller == 'feedforward' else
+                  NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name))
     sim = Simulator(loaded)
     every = max(1, int(round(controller.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
