@@ -198,8 +198,9 @@ class NlpSolver:
             qp_opts['error_on_fail'] = False
             return {**common, 'qpsol': sp.qp_solver, 'qpsol_options': qp_opts,
                     'max_iter': max_iter, 'tol_pr': sp.tol, 'tol_du': sp.tol,
-                    'print_header': False, 'print_iteration': False, 'print_status': False,
-                    'convexify_strategy': 'regularize', 'convexify_margin': 1e-6}
+                    'print_header': False, 'print_iteration': False, 'print_status': False}
+            # no convexification: 'regularize' stalls (50 iterations, 2 % above the optimum),
+            # the exact Hessian converges in ~6 iterations from a cold start
         if sp.method == 'ipopt':
             return {**common, 'ipopt': {'print_level': 0, 'tol': sp.tol, 'max_iter': max_iter,
                                         'sb': 'yes', 'warm_start_init_point': 'yes'}}

@@ -1,0 +1,295 @@
+"""NMPC: closed loop to a drift equilibrium, bounds, failure handling, torque-only mode, solvers."""
+import dataclasses
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from drift_control.equilibrium import solve_equilibrium
+from drift_control.nmpc import Nmpc, NmpcStatus, reference_rows
+from drift_control.ocp import NmpcParams, Ocp, SolverParams, load_nmpc_params
+from drift_control.params import ParamError, load_surface, load_vehicle
+from drift_control.signals import Direction, Equilibrium, Mode, Reference, Validity, VehicleState
+from drift_control.vehicle import VehicleModel
+
+TS = 0.02
+
+
+@pytest.fixture(scope='module')
+def vp():
+    return load_vehicle()
+
+
+@pytest.fixture(scope='module')
+def params():
+    return load_nmpc_params()
+
+
+@pytest.fixture(scope='module')
+def eq30(vp):
+    sol = solve_equilibrium(math.radians(-30.0), 15.0, vp)
+    assert sol.converged
+    return sol.eq
+
+
+@pytest.fixture(scope='module')
+def nmpc(vp, params):
+    """The configured (compiled, cached under .codegen/) solver, built once for the module."""
+    return Nmpc(vp, params)
+
+
+@pytest.fixture(scope='module')
+def plant(vp):
+    """The full model (dynamic front wheel) at 1 ms steps as the plant."""
+    return VehicleModel(vp).discrete(TS, 20)
+
+
+def measure(x, now, rng=None, noise=0.0, **kw):
+    n = (lambda: rng.normal(0.0, noise)) if rng is not None else (lambda: 0.0)
+    return VehicleState(stamp=now, V=x[0] + n(), beta=x[1] + n(), r=x[2] + n(),
+                        wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5], **kw)
+
+
+def perturbed_start(eq: Equilibrium) -> np.ndarray:
+    x = np.zeros(9)
+    x[:6] = [0.95 * eq.V, eq.beta + 0.1, 0.8 * eq.r, eq.omega_F, 0.95 * eq.omega_R,
+             eq.delta + 0.05]
+    return x
+
+
+def run_loop(ctrl: Nmpc, plant, eq, x, seconds, mu_plant, seed=0, driver=None):
+    """Closed loop; returns states (n, 9) and results. ``driver(x)`` steers in TORQUE_ONLY."""
+    rng = np.random.default_rng(seed)
+    ctrl.reset()
+    xs, results = [], []
+    for k in range(int(round(seconds / TS))):
+        now = k * TS
+        res = ctrl.step(measure(x, now, rng, 0.003), Reference(now, eq, Direction.LEFT), now)
+        rate = driver(x) if driver else res.command.delta_rate
+        x = np.asarray(plant(x, [rate, res.command.drive_torque], [0.0, mu_plant])).ravel()
+        xs.append(x)
+        results.append(res)
+    return np.array(xs), results
+
+
+def assert_within_bounds(ctrl: Nmpc, commands):
+    b = ctrl.bounds
+    for c in commands:
+        values = (c.delta, c.delta_rate, c.drive_torque)
+        assert all(math.isfinite(v) for v in values), c
+        assert abs(c.delta) <= b.delta_max + 1e-9, c
+        assert abs(c.delta_rate) <= b.delta_dot_max + 1e-9, c
+        assert b.T_R_min - 1e-6 <= c.drive_torque <= b.T_R_max + 1e-6, c
+
+
+# --- parameters --------------------------------------------------------------------------------
+
+def test_yaml_bad_key_is_named(tmp_path):
+    bad = tmp_path / 'nmpc.yaml'
+    bad.write_text('N: 25\ncost: {beta: 0.01, betta: 0.02}\n')
+    with pytest.raises(ParamError, match='betta'):
+        load_nmpc_params(bad)
+    bad.write_text('solver: {method: acado}\n')
+    with pytest.raises(ParamError, match='solver.method'):
+        load_nmpc_params(bad)
+
+
+def test_tighter_yaml_limits_win(vp):
+    p = NmpcParams(limits=dataclasses.replace(NmpcParams().limits, delta_dot_max=0.4))
+    ocp = Ocp(vp, p)
+    assert ocp.bounds.delta_dot_max == 0.4
+    assert ocp.bounds.delta_max == vp.limits.delta_max
+
+
+# --- closed loop ---------------------------------------------------------------------------------
+
+def test_closed_loop_converges_to_30deg_drift(nmpc, plant, eq30):
+    """Plant: full model, friction 5 % below the NMPC's, measurement noise."""
+    xs, results = run_loop(nmpc, plant, eq30, perturbed_start(eq30), 5.0, mu_plant=0.95)
+    beta_err = np.degrees(xs[int(3.0 / TS):, 1] - eq30.beta)
+    assert np.max(np.abs(beta_err)) < 1.0, f'beta error after 3 s up to {beta_err.max():.2f} deg'
+    r_err = xs[int(3.0 / TS):, 2] - eq30.r
+    assert np.max(np.abs(r_err)) < 0.03
+    assert all(r.status == NmpcStatus.OK for r in results)
+    assert_within_bounds(nmpc, [r.command for r in results])
+
+
+def test_commands_within_bounds_far_from_the_reference(nmpc, plant, eq30):
+    """From straight driving at 12 m/s toward the drift: the bounds are active and held."""
+    x = np.zeros(9)
+    x[:6] = [12.0, 0.0, 0.0, 12.0 / 0.327, 12.0 / 0.329, 0.3]
+    xs, results = run_loop(nmpc, plant, eq30, x, 2.0, mu_plant=1.0)
+    commands = [r.command for r in results]
+    assert_within_bounds(nmpc, commands)
+    assert max(abs(c.delta_rate) for c in commands) == pytest.approx(
+        nmpc.bounds.delta_dot_max, rel=1e-3), 'the steering-rate bound should be active'
+
+
+def test_mu_is_a_runtime_parameter(vp, params, plant):
+    """The same compiled solver drifts on the wet surface when told mu."""
+    mu = load_surface('wet').mu
+    sol = solve_equilibrium(math.radians(-30.0), 15.0, vp, mu=mu)
+    assert sol.converged
+    ctrl = Nmpc(vp, params, mu=mu)
+    xs, _ = run_loop(ctrl, plant, sol.eq, perturbed_start(sol.eq), 4.0, mu_plant=mu)
+    assert abs(math.degrees(xs[-1, 1] - sol.eq.beta)) < 1.0
+
+
+def test_reference_horizon_per_stage(eq30):
+    """A per-stage horizon is used stage by stage; a short one is held at its last entry."""
+    other = dataclasses.replace(eq30, beta=-0.3)
+    ref = Reference(0.0, eq30, horizon=(eq30, other))
+    rows = reference_rows(ref, 25)
+    assert rows[0, 1] == eq30.beta and np.all(rows[1:, 1] == -0.3)
+    assert np.all(reference_rows(Reference(0.0, eq30), 25)[:, 1] == eq30.beta)
+
+
+# --- failures ------------------------------------------------------------------------------------
+
+def warm(ctrl, eq, steps=3):
+    ctrl.reset()
+    x = perturbed_start(eq)
+    for k in range(steps):
+        assert ctrl.step(measure(x, k * TS), Reference(k * TS, eq), k * TS).status == NmpcStatus.OK
+    return x, steps * TS
+
+
+def test_solver_failure_shifts_then_falls_back(nmpc, eq30, monkeypatch):
+    x, now = warm(nmpc, eq30)
+    last = nmpc.step(measure(x, now), Reference(now, eq30), now).command
+
+    def broken(*args, **kwargs):
+        raise RuntimeError('injected')
+    monkeypatch.setattr(nmpc._solver, 'solve', broken)
+    statuses, commands = [], [last]
+    for k in range(1, nmpc.params.max_failures + 4):
+        t = now + k * TS
+        res = nmpc.step(measure(x, t), Reference(t, eq30), t)
+        statuses.append(res.status)
+        commands.append(res.command)
+        assert 'injected' in res.message
+    n = nmpc.params.max_failures
+    assert statuses[:n] == [NmpcStatus.SHIFTED] * n
+    assert all(s == NmpcStatus.FALLBACK for s in statuses[n:])
+    assert_within_bounds(nmpc, commands)
+    fallback = commands[n + 1:]
+    assert all(c.mode == Mode.FALLBACK for c in fallback)
+    torques = [c.drive_torque for c in commands[n:]]
+    assert all(abs(b) < abs(a) or a == 0 for a, b in zip(torques, torques[1:])), 'torque ramps down'
+    for a, b in zip(commands[n:], fallback):
+        assert abs(b.delta - a.delta) <= nmpc.params.fallback_delta_rate * TS + 1e-12
+    monkeypatch.undo()
+    t = now + 10 * TS
+    assert nmpc.step(measure(x, t), Reference(t, eq30), t).status == NmpcStatus.OK, 'recovers'
+
+
+def test_failure_falls_back_within_one_cycle(vp, params, eq30, monkeypatch):
+    ctrl = Nmpc(vp, dataclasses.replace(params, max_failures=0))
+    x, now = warm(ctrl, eq30)
+    monkeypatch.setattr(ctrl._solver, 'solve',
+                        lambda *a, **k: (_ for _ in ()).throw(RuntimeError('injected')))
+    res = ctrl.step(measure(x, now), Reference(now, eq30), now)
+    assert res.status == NmpcStatus.FALLBACK and res.command.mode == Mode.FALLBACK
+    assert_within_bounds(ctrl, [res.command])
+
+
+@pytest.mark.parametrize('bad', ['nan', 'stale', 'future', 'invalid', 'none', 'ref_nan',
+                                 'ref_stale'])
+def test_bad_input_never_reaches_the_solver(nmpc, eq30, bad, monkeypatch):
+    x, now = warm(nmpc, eq30)
+    calls = []
+    monkeypatch.setattr(nmpc._solver, 'solve', lambda *a, **k: calls.append(1))
+    state, ref = measure(x, now), Reference(now, eq30)
+    if bad == 'nan':
+        state = dataclasses.replace(state, beta=float('nan'))
+    elif bad == 'stale':
+        state = dataclasses.replace(state, stamp=now - 0.06)
+    elif bad == 'future':
+        state = dataclasses.replace(state, stamp=now + 0.06)
+    elif bad == 'invalid':
+        state = dataclasses.replace(state, validity=int(Validity.ALL & ~Validity.BETA))
+    elif bad == 'none':
+        state = None
+    elif bad == 'ref_nan':
+        ref = Reference(now, dataclasses.replace(eq30, r=float('inf')))
+    elif bad == 'ref_stale':
+        ref = Reference(now - 0.2, eq30)
+    res = nmpc.step(state, ref, now)
+    assert not calls
+    assert res.status in (NmpcStatus.SHIFTED, NmpcStatus.FALLBACK) and not res.solved
+    assert_within_bounds(nmpc, [res.command])
+
+
+def test_nan_state_falls_back_within_one_cycle(vp, params, eq30):
+    ctrl = Nmpc(vp, dataclasses.replace(params, max_failures=0))
+    x, now = warm(ctrl, eq30)
+    res = ctrl.step(dataclasses.replace(measure(x, now), r=float('nan')), Reference(now, eq30), now)
+    assert res.status == NmpcStatus.FALLBACK
+    assert_within_bounds(ctrl, [res.command])
+
+
+def test_no_input_at_start_releases_the_actuators(nmpc, eq30):
+    nmpc.reset()
+    res = nmpc.step(None, Reference(0.0, eq30), 0.0)
+    assert res.status == NmpcStatus.NO_INPUT and res.command.mode == Mode.OFF
+    assert res.command.drive_torque == 0.0
+
+
+# --- torque-only mode ------------------------------------------------------------------------------
+
+def test_torque_only_keeps_the_measured_steering(vp, params, plant, eq30):
+    """The driver steers (a slow P controller on beta); the NMPC's own delta is a proposal."""
+    ctrl = Nmpc(vp, params, mode=Mode.TORQUE_ONLY)
+    x, now = warm(ctrl, eq30)
+    x[5] = eq30.delta + 0.1   # the driver steers 0.1 rad away from the equilibrium
+    res = ctrl.step(measure(x, now), Reference(now, eq30), now)
+    assert res.command.mode == Mode.TORQUE_ONLY
+    hold = params.torque_only_hold_stages
+    assert np.allclose(res.predicted_states[:hold + 1, 5], x[5]), 'first stages keep the measured'
+    assert res.predicted_inputs[0, 0] == pytest.approx(0.0, abs=1e-9)
+    assert res.command.delta != pytest.approx(x[5], abs=1e-3), 'proposal is the NMPC own delta'
+
+    def driver(state):
+        return float(np.clip(-2.0 * (state[1] - eq30.beta) + 2.0 * (eq30.delta - state[5]),
+                             -0.5, 0.5))
+    xs, results = run_loop(ctrl, plant, eq30, perturbed_start(eq30), 3.0, 1.0, driver=driver)
+    assert all(r.command.mode == Mode.TORQUE_ONLY for r in results)
+    assert_within_bounds(ctrl, [r.command for r in results])
+    assert np.all(np.abs(xs[:, 1]) > math.radians(15.0)), 'the torque keeps the car drifting'
+
+
+# --- solver backends ---------------------------------------------------------------------------
+
+def test_gcc_missing_falls_back_to_interpreted(vp, params, eq30, monkeypatch):
+    import drift_control.ocp_solvers as solvers
+    monkeypatch.setattr(solvers.shutil, 'which', lambda name: None)
+    ctrl = Nmpc(vp, params)
+    assert ctrl._solver.qp_data.class_name() == 'MXFunction'
+    warm(ctrl, eq30)
+
+
+def test_configured_solver_is_compiled(nmpc):
+    if nmpc.params.solver.codegen and shutil.which('gcc'):
+        assert nmpc._solver.qp_data.class_name() != 'MXFunction'
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize('method,qp', [('rti', 'qrqp'), ('rti', 'osqp'), ('sqp', 'qrqp'),
+                                       ('ipopt', 'qrqp'), ('fatrop', 'qrqp')])
+def test_solvers_agree(vp, eq30, method, qp):
+    """Converged from the same start, every backend finds the same optimum."""
+    ref_sp = SolverParams(method='rti', qp_solver='hpipm', codegen=False, max_iter=30, tol=1e-9)
+    sp = SolverParams(method=method, qp_solver=qp, codegen=False, max_iter=50, tol=1e-9)
+    costs = []
+    for s in (ref_sp, sp):
+        ocp = Ocp(vp, NmpcParams(solver=s))
+        from drift_control.ocp_solvers import make_solver
+        x0 = np.r_[perturbed_start(eq30)[:6], eq30.T_R]
+        rows = reference_rows(Reference(0.0, eq30), ocp.N)
+        lb, ub = ocp.bounds_for(x0)
+        w0 = ocp.join(np.tile(x0, (ocp.N + 1, 1)), np.tile([0.0, eq30.T_R], (ocp.N, 1)))
+        out = make_solver(ocp, s).solve(w0, ocp.pack_params(rows, 1.0), lb, ub, 50)
+        assert out.success, (method, qp, out.status)
+        costs.append(out.cost)
+    assert costs[1] == pytest.approx(costs[0], rel=1e-4)
