@@ -6,7 +6,7 @@ import pytest
 
 from drift_control.params import ParamError
 from drift_control.signals import Command, Mode
-from drift_sim.model import S, PlantModel
+from drift_sim.model import S, Y, PlantModel
 from drift_sim.params import load_plant_params
 from drift_sim.plant import Plant
 
@@ -104,12 +104,14 @@ def test_eps_torque_limit_keeps_the_wheels_from_the_requested_angle(model):
         plant = Plant(p, mu=1.0, model=PlantModel(p))
         plant.reset(V=20.0)
         request = Command(0.0, 0.10, 0.0, 1200.0, Mode.FULL)
-        states = []
+        states, torques = [], []
         for _ in range(150):
-            plant.step(request)
+            hands_off = plant.step(request).steering_torque
             states.append(plant.truth.state)
+            torques.append(plant.truth.y[Y.STEER_TORQUE])
         reached[torque_max] = states[-1].delta
-        assert max(abs(s.steering_torque) for s in states) <= torque_max + 1e-3
+        assert max(abs(t) for t in torques) <= torque_max + 1e-3
+        assert abs(hands_off) < 1.0, 'the driver applies no torque when the actuator steers'
     assert reached[150.0] == pytest.approx(0.10, abs=0.005), 'a strong actuator tracks'
     assert reached[30.0] < 0.10 - 0.02, 'the 30 Nm EPS loses against the aligning moment'
 

@@ -113,6 +113,7 @@ class SteeringParams:
     bandwidth: float         # position-loop bandwidth [Hz]
     torque_max: float        # actuator torque at the steering wheel [Nm]
     driver_torque_max: float  # human (with assist) torque at the steering wheel [Nm]
+    driver_share: float      # share of the steering torque the human feels, rest is assist [-]
     trail_mech: float        # mechanical trail [m]
     trail_pneu: float        # pneumatic trail at zero slip [m]
     trail_B: float           # pneumatic trail decay [1/rad]
@@ -121,6 +122,7 @@ class SteeringParams:
         for name in ('ratio', 'delta_max', 'rate_max', 'J', 'bandwidth', 'torque_max',
                      'driver_torque_max'):
             require(getattr(self, name) > 0, f'plant.steering.{name}', 'must be positive')
+        require(0 <= self.driver_share <= 1, 'plant.steering.driver_share', 'must be in [0, 1]')
         require(self.c >= 0 and self.trail_mech >= 0 and self.trail_pneu >= 0,
                 'plant.steering', 'c and trails must be >= 0')
 

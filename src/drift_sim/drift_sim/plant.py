@@ -160,6 +160,7 @@ class Plant:
         self._steer_hold = delta
         _, ys = self.model.f(s, self._inputs_column(delta, 0.0, drive_torque, 0.0, False), self.q)
         row = signals(s[:, None], np.asarray(ys))
+        row[:, C['steering_torque']] = 0.0
         self._hist = np.repeat(row, int(self._lag.max()) + p.substeps, axis=0)
         self.truth = GroundTruth(0.0, s.copy(), np.asarray(ys).ravel(), _state(0.0, row[0]))
         return self._measure()
@@ -202,6 +203,8 @@ class Plant:
         self.x = X[:, -1].copy()
         self.t = round(self.t + p.step, 9)
         rows = signals(X, Ys)
+        # the measured steering torque is the driver's (a takeover signal): none when hands-off
+        rows[:, C['steering_torque']] *= self.p.steering.driver_share if human else 0.0
         self._hist = np.concatenate([self._hist[n:], rows])
         self.truth = GroundTruth(self.t, self.x.copy(), Ys[:, -1].copy(), _state(self.t, rows[-1]))
         if not np.all(np.isfinite(self.x)):
