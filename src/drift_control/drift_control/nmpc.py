@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 
 import numpy as np
@@ -55,6 +55,7 @@ class NmpcResult:
     predicted_inputs: np.ndarray
     message: str
     consecutive_failures: int = 0
+    stage_dt: float = 0.0   # length of one predicted stage [s]
 
 
 class Nmpc:
@@ -100,7 +101,7 @@ class Nmpc:
         else:
             result = self._failed(state, ref, now, problem, solve_time=0.0, iterations=0)
         self._last = result.command
-        return result
+        return replace(result, stage_dt=self.params.Ts)
 
     def _input_problem(self, state, ref, now) -> str | None:
         """Why the inputs cannot be used, or None."""

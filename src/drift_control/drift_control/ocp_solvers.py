@@ -45,6 +45,14 @@ def compile_cached(fn_or_solver, name: str, sp: SolverParams, dependencies: bool
     if shutil.which('gcc') is None:
         log.warning('gcc not found: %s runs interpreted', name)
         return None
+    try:
+        return _compile_cached(fn_or_solver, name, sp, dependencies)
+    except OSError as err:   # e.g. a read-only install: slower, not broken
+        log.warning('cannot compile %s (%s): running interpreted', name, err)
+        return None
+
+
+def _compile_cached(fn_or_solver, name: str, sp: SolverParams, dependencies: bool):
     cache = Path(sp.codegen_dir)
     if not cache.is_absolute():
         cache = config_dir().parent / cache

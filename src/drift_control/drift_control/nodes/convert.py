@@ -124,6 +124,21 @@ def path_to_msg(path, stamp, frame_id: str = MAP_FRAME, step: float = 0.5):
     return m
 
 
+def status_to_msg(result, stamp=None, frame_id: str = BODY_FRAME) -> msg.NmpcStatus:
+    """``nmpc.NmpcResult`` -> NmpcStatus message (predicted trajectory flattened row-major)."""
+    from drift_control.nmpc import INPUT_NAMES, STATE_NAMES   # casadi only for the NMPC node
+    m = msg.NmpcStatus(
+        status=int(result.status), message=str(result.message)[:500],
+        iterations=int(result.iterations), solve_time=float(result.solve_time_s),
+        cost=float(result.cost), consecutive_failures=int(result.consecutive_failures),
+        stage_dt=float(result.stage_dt), state_names=list(STATE_NAMES),
+        predicted_states=[float(v) for v in result.predicted_states.ravel()],
+        input_names=list(INPUT_NAMES),
+        predicted_inputs=[float(v) for v in result.predicted_inputs.ravel()])
+    _header(m.header, stamp, result.command.stamp, frame_id)
+    return m
+
+
 __all__ = ['command_from_msg', 'command_to_msg', 'equilibrium_from_msg', 'equilibrium_to_msg',
            'path_to_msg', 'reference_from_msg', 'reference_to_msg', 'state_from_msg',
-           'state_to_msg', 'time_from_msg', 'time_to_msg']
+           'state_to_msg', 'status_to_msg', 'time_from_msg', 'time_to_msg']

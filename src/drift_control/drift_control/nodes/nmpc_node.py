@@ -1,0 +1,107 @@
+"""NMPC node: vehicle/state + drift/reference -> Nmpc.step -> drift/command, status, diagnostics."""
+import os
+import sys
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from drift_msgs.msg import DriftCommand, DriftReference, NmpcStatus, VehicleState
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+from drift_control.nmpc import Nmpc
+from drift_control.nmpc import NmpcStatus as Status
+from drift_control.nodes import convert
+from drift_control.ocp import load_nmpc_params
+from drift_control.params import ParamError, config_dir, load_surface, load_vehicle, load_yaml
+from drift_control.signals import Mode
+
+MODES = {'full': Mode.FULL, 'torque_only': Mode.TORQUE_ONLY}
+LEVEL = {Status.OK: DiagnosticStatus.OK, Status.SHIFTED: DiagnosticStatus.WARN,
+         Status.NO_INPUT: DiagnosticStatus.WARN, Status.FALLBACK: DiagnosticStatus.ERROR}
+
+
+class NmpcNode(Node):
+    """Runs the NMPC every period (``trigger: timer``) or on every new state (``trigger: state``)."""
+
+    def __init__(self):
+        super().__init__('nmpc')
+        cfg = self.declare_parameter('config_dir', str(config_dir())).value
+        scenario = self.declare_parameter('scenario', '').value
+        mode = self.declare_parameter('control_mode', '').value   # '' = the scenario's, else full
+        trigger = self.declare_parameter('trigger', 'timer').value
+        scen = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')) if scenario else {}
+        mode = mode or scen.get('control_mode', 'full')
+        if mode not in MODES or trigger not in ('timer', 'state'):
+            raise ParamError(f'nmpc node: control_mode {mode!r} not in {list(MODES)} or trigger '
+                             f"{trigger!r} not in ['timer', 'state']")
+        surface = load_surface((scen.get('surface') or {}).get('name', 'dry'),
+                               os.path.join(cfg, 'vehicle', 'surfaces.yaml'))
+        params = load_nmpc_params(os.path.join(cfg, 'nmpc.yaml'))
+        vehicle = load_vehicle(os.path.join(cfg, 'vehicle', 'm3_competition.yaml'))
+        self._nmpc = Nmpc(vehicle, params, MODES[mode], mu=surface.mu)
+        self._state = self._ref = self._last = None
+        command_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
+        self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
+        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        self._state_triggered = trigger == 'state'
+        self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
+                                 qos_profile_sensor_data)
+        self.create_subscription(DriftReference, 'drift/reference', self._on_ref, 10)
+        if not self._state_triggered:
+            self.create_timer(params.Ts, self._on_tick)   # node clock: honours use_sim_time
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(f'{mode} on {surface.name} (mu {surface.mu:g}), trigger {trigger}, '
+                               f'solver {params.solver.method}/{params.solver.qp_solver}')
+
+    def _on_state(self, msg):
+        self._state = convert.state_from_msg(msg)
+        if self._state_triggered:
+            self._on_tick()
+
+    def _on_ref(self, msg):
+        self._ref = convert.reference_from_msg(msg)
+
+    def _on_tick(self):
+        now = self.get_clock().now()
+        result = self._nmpc.step(self._state, self._ref, now.nanoseconds * 1e-9)
+        self._cmd_pub.publish(convert.command_to_msg(result.command, now))
+        self._status_pub.publish(convert.status_to_msg(result, now))
+        self._last = result
+
+    def _publish_diagnostics(self):
+        r = self._last
+        status = DiagnosticStatus(name='nmpc', hardware_id='drift_control')
+        status.level = LEVEL[r.status] if r else DiagnosticStatus.STALE
+        status.message = f'{r.status.name}: {r.message}'[:200] if r else 'not run yet'
+        if r:
+            status.values = [KeyValue(key='solve_time_ms', value=f'{1e3 * r.solve_time_s:.3f}'),
+                             KeyValue(key='iterations', value=str(r.iterations)),
+                             KeyValue(key='consecutive_failures',
+                                      value=str(r.consecutive_failures))]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._diag_pub.publish(msg)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node, code = None, 0
+    try:
+        node = NmpcNode()
+        rclpy.spin(node)
+    except ParamError as err:
+        rclpy.logging.get_logger('nmpc').error(str(err))
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
