@@ -1,4 +1,4 @@
-"""Sim node: the plant as a car on the network -- vehicle/state out every 10 ms, drift/command in."""
+"""Sim node: the plant as a car -- vehicle/state out every 10 ms, drift/command in (or CAN)."""
 import time
 
 import rclpy
@@ -16,7 +16,11 @@ from drift_sim.simulator import Simulator
 
 
 class SimNode(Node):
-    """Steps the simulator in real time, or in lock-step with the controller on sim time."""
+    """Steps the simulator in real time, or in lock-step with the controller on sim time.
+
+    ``io:=can`` puts the plant behind the car's end of the CAN bus instead (for the bridge in
+    the loop, real time): only the ground truth goes to ROS.
+    """
 
     def __init__(self):
         super().__init__('sim')
@@ -28,6 +32,9 @@ class SimNode(Node):
         period = self.declare_parameter('command_period', 0.02).value
         timeout = self.declare_parameter('lockstep_timeout', 1.0).value
         startup = self.declare_parameter('startup_timeout', 120.0).value
+        io = self.declare_parameter('io', 'ros').value
+        can_interface = self.declare_parameter('can_interface', 'virtual').value
+        can_channel = self.declare_parameter('can_channel', 'drift').value
         if self._mode not in ('realtime', 'lockstep'):
             raise ValueError(f"clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
         loaded = load_scenario(scenario, [o for o in overrides if o], cfg,
@@ -35,12 +42,22 @@ class SimNode(Node):
         self._sim = Simulator(loaded)
         self._gate = LockstepGate(self._sim.dt, period, timeout, startup)
         self._command = None
+        self._can = None
+        if io == 'can':
+            from drift_sim.can_vehicle import CanVehicle
+            from drift_vehicle_bridge.vehicle_side import CarSide
+            self._mode = 'realtime'
+            self._can = CanVehicle(self._sim, CarSide.open(interface=can_interface,
+                                                           channel=can_channel))
+        elif io != 'ros':
+            raise ValueError(f"io must be 'ros' or 'can', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
         self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable)
-        self._publish(self._sim.state)
+        if self._can is None:
+            self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.001
         self.create_timer(tick, self._on_tick)
         self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), seed '
@@ -60,6 +77,11 @@ class SimNode(Node):
                 self._reported = self._gate.timeouts
                 self.get_logger().warning(f'lockstep: no command for t={self._sim.t:.2f} s '
                                           f'({self._gate.timeouts} timeouts); stepping on')
+        if self._can is not None:
+            self._can.step(time.monotonic())
+            self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state,
+                                                         self.get_clock().now()))
+            return
         self._publish(self._sim.step(self._command))
 
     def _publish(self, state):
@@ -84,6 +106,8 @@ def main(args=None):
         pass
     finally:
         if node is not None:
+            if node._can is not None:
+                node._can.car.bus.shutdown()
             node.destroy_node()
         rclpy.try_shutdown()
 

@@ -1,0 +1,42 @@
+"""CAN vehicle mode: the simulator as the car on a CAN bus, for bridge-in-the-loop runs.
+
+The car's end of the DBC is ``drift_vehicle_bridge.vehicle_side.CarSide``: every 10 ms this
+steps the simulator with the command the car side accepted (checked counters, CRCs, timeouts)
+and writes the measured state frames. A released request (None) is what a real car does without
+a valid request: no drive torque, steering held (the bridge's fallback and takeover logic is then
+exercised against a plant, not against a mock).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+from drift_control.signals import Command, Mode, VehicleState
+from drift_sim.simulator import Simulator
+
+
+class CanVehicle:
+    """Steps a ``Simulator`` on commands from a ``CarSide`` and answers with state frames.
+
+    Parameters
+    ----------
+    sim : Simulator
+        The scenario on the plant.
+    car : drift_vehicle_bridge.vehicle_side.CarSide
+        The car's end of the bus (the caller owns and closes its bus).
+    """
+
+    def __init__(self, sim: Simulator, car):
+        self.sim, self.car = sim, car
+        self.released = 0      # steps without an accepted request
+        self.command: Command | None = None
+
+    def step(self, now: float) -> VehicleState:
+        """One 10 ms cycle at ``now`` [s] (the bus side's clock): poll, step, send."""
+        command = self.car.poll_command(now)
+        if command is None:
+            self.released += 1
+            command = Command(now, self.sim.state.delta, 0.0, 0.0, Mode.OFF)
+        self.command = command
+        state = self.sim.step(command)
+        self.car.send_state(dataclasses.replace(state, stamp=now))
+        return state
