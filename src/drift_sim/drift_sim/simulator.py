@@ -48,7 +48,8 @@ class Simulator:
                  model: PlantModel | None = None):
         self.loaded = loaded
         self.scenario = sc = loaded.scenario
-        self.plant = Plant(loaded.plant, mu=sc.mu, seed=sc.seed if seed is None else seed,
+        self.mu = sc.mu     # resolved once: the named surface's mu comes from a file
+        self.plant = Plant(loaded.plant, mu=self.mu, seed=sc.seed if seed is None else seed,
                            model=model)
         self.dt = loaded.plant.step
         self.driver = (Driver(load_driver_params(loaded.driver_raw), loaded.path, self.dt)
@@ -73,7 +74,7 @@ class Simulator:
     def reset(self) -> VehicleState:
         """Put the car at the scenario's start; returns the first measurement."""
         start = initial_pose(self.scenario, self.loaded.path, self.loaded.plant.body.L)
-        self.plant.set_mu(self.scenario.mu)
+        self.plant.set_mu(self.mu)
         self.state = self.plant.reset(**start)
         self._frenet.reset(self.scenario.initial.s)
         if self.driver is not None:
@@ -92,7 +93,7 @@ class Simulator:
             self.commands_lost += 1
             command = self._last
         self._last = command
-        mu = self.scenario.mu
+        mu = self.mu
         for f in faults:
             if f.kind == 'mu_scale':
                 mu *= f.value
