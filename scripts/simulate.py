@@ -61,6 +61,58 @@ class NmpcController:
         return result.command, result.solve_time_s
 
 
+class SingleTrackSim:
+    """The controller's own single-track model (drift_control.model_plant) as the plant.
+
+    A diagnosis aid (``--plant single_track``): no model mismatch, no actuator dynamics, no
+    friction field, no noise. If a scenario fails here too, the cause is not the simulator.
+    """
+
+    def __init__(self, loaded, cfg: Path):
+        from drift_control.frenet import Frenet
+        from drift_control.model_plant import ModelPlant
+        from drift_control.vehicle import NX, X
+        from drift_sim.scenario import initial_pose
+        self.loaded, self.scenario = loaded, loaded.scenario
+        vehicle = load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml')
+        self.plant = ModelPlant(vehicle, mu=self.scenario.mu, seed=self.scenario.seed)
+        self.plant.seed, self.plant.model = self.scenario.seed, None
+        self.dt, self.commands_lost = 0.01, 0
+        start = initial_pose(self.scenario, loaded.path, vehicle.L)
+        x0 = np.zeros(NX)
+        x0[[X.V, X.BETA, X.R, X.DELTA]] = start['V'], start['beta'], start['r'], start['delta']
+        x0[X.OMEGA_F] = start['V'] * math.cos(start['beta']) / vehicle.R_F
+        x0[X.OMEGA_R] = start['V'] * math.cos(start['beta']) / vehicle.R_R
+        self._x0, self._pose = x0, (start['x'], start['y'], start['yaw'])
+        self._frenet = Frenet(loaded.path)
+        self._frenet.reset(self.scenario.initial.s)
+        self._last = Command(0.0, start['delta'], 0.0, 0.0, Mode.FULL)
+
+    @property
+    def t(self):
+        return self.plant.t
+
+    def reset(self):
+        self.state = self.plant.reset(self._x0, self._pose)
+        return self.state
+
+    def step(self, command):
+        if command is None:
+            self.commands_lost += 1
+        self._last = command or self._last
+        self.state = self.plant.step(self._last, self.dt)
+        return self.state
+
+    def sample(self):
+        from drift_sim.simulator import TruthSample
+        st = self.state
+        fp = self._frenet.project(st.x, st.y, st.yaw, st.beta)
+        K = float(fp.K)
+        beta_des = -math.copysign(float(self.loaded.path.beta_at(fp.s)), K) if K else 0.0
+        return TruthSample(st.stamp, st, self.plant.mu, float(fp.s), float(fp.e_y), beta_des,
+                           st.drive_torque, self._last.delta)
+
+
 def run(args) -> dict:
     cfg = Path(args.config_dir)
     loaded = load_scenario(args.scenario, args.set, cfg, seed=args.seed)
@@ -73,7 +125,7 @@ def run(args) -> dict:
                                  load_reference_params(cfg / 'reference.yaml'))
     controller = (Feedforward() if args.controller == 'feedforward' else
                   NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name))
-    sim = Simulator(loaded)
+    sim = Simulator(loaded) if args.plant == 'double_track' else SingleTrackSim(loaded, cfg)
     every = max(1, int(round(controller.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
 
@@ -121,7 +173,8 @@ def run(args) -> dict:
                           solve_times, wall)
     out.update(scenario=sc.name, seed=sim.plant.seed, controller=args.controller,
                overrides=list(args.set), expect_spin=sc.expect_spin,
-               commands_lost=sim.commands_lost, plant_jit=bool(sim.plant.model.jit))
+               commands_lost=sim.commands_lost, plant=args.plant,
+               plant_jit=bool(sim.plant.model and sim.plant.model.jit))
     if args.trace:
         np.savez_compressed(args.trace, **data)
     return out
@@ -134,6 +187,9 @@ def main(argv=None) -> int:
                         help='override a scenario key (surface.mu=0.55, plant.lsd.locking=1)')
     parser.add_argument('--seed', type=int, default=None)
     parser.add_argument('--controller', choices=('nmpc', 'feedforward'), default='nmpc')
+    parser.add_argument('--plant', choices=('double_track', 'single_track'),
+                        default='double_track', help='single_track: the controller model itself '
+                        '(diagnosis: no mismatch, no actuators, no noise)')
     parser.add_argument('--config-dir', default=str(config_dir()))
     parser.add_argument('--json', help='write the metrics here')
     parser.add_argument('--trace', help='write the time series here (.npz)')
