@@ -42,6 +42,7 @@ class SimNode(Node):
         self._sim = Simulator(loaded)
         self._gate = LockstepGate(self._sim.dt, period, timeout, startup)
         self._command = None
+        self._reported = 0
         self._can = None
         if io == 'can':
             from drift_sim.can_vehicle import CanVehicle
@@ -58,7 +59,7 @@ class SimNode(Node):
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable)
         if self._can is None:
             self._publish(self._sim.state)
-        tick = self._sim.dt if self._mode == 'realtime' else 0.001
+        tick = self._sim.dt if self._mode == 'realtime' else 0.005
         self.create_timer(tick, self._on_tick)
         self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), seed '
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
@@ -66,17 +67,24 @@ class SimNode(Node):
     def _on_command(self, msg):
         self._command = convert.command_from_msg(msg)
         self._gate.offer(self._command)
+        if self._mode == 'lockstep':
+            self._on_tick()     # step on at once: no timer latency in the loop
 
     def _on_tick(self):
         if self._sim.done:
             return
         if self._mode == 'lockstep':
-            if not self._gate.ready(self._sim.t, time.monotonic()):
-                return
-            if self._gate.timeouts and self._gate.timeouts != getattr(self, '_reported', 0):
-                self._reported = self._gate.timeouts
-                self.get_logger().warning(f'lockstep: no command for t={self._sim.t:.2f} s '
-                                          f'({self._gate.timeouts} timeouts); stepping on')
+            # as many steps as the gate allows (up to the next command), then back to spin
+            for _ in range(self._gate.every):
+                if self._sim.done or not self._gate.ready(self._sim.t, time.monotonic()):
+                    return
+                if self._gate.timeouts != self._reported:
+                    self._reported = self._gate.timeouts
+                    self.get_logger().warning(f'lockstep: no command for t={self._sim.t:.2f} s '
+                                              f'({self._gate.timeouts} timeouts); stepping on',
+                                              throttle_duration_sec=2.0)
+                self._publish(self._sim.step(self._command))
+            return
         if self._can is not None:
             self._can.step(time.monotonic())
             self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state,
