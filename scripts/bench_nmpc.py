@@ -91,7 +91,7 @@ class DoMpcController:
         mpc.bounds['upper', '_u', 'T_R'] = b.T_R_max
         for n, s in zip(names, ocp.state_scale()):
             mpc.scaling['_x', n] = s
-        mpc.scaling['_u', 'T_R'] = 1000.0
+        # no input scaling: do-mpc's default r-term penalises the *scaled* input change
         mpc.set_uncertainty_values(mu=np.array([mu]))
         self._tvp = mpc.get_tvp_template()
         self._ref = np.zeros(7)
@@ -142,7 +142,8 @@ def closed_loop(step, vehicle, eq, seconds: float, mu: float, seed: int = 0) -> 
         x = x.ravel()
         beta.append(x[1])
     t = np.array(times[1:]) * 1e3   # the first (cold) solve is reported apart
-    err = np.degrees(np.array(beta) - eq.beta)[int(3.0 / BUDGET):]
+    settle = min(3.0, seconds / 2)   # tracking error counted after this [s]
+    err = np.degrees(np.array(beta) - eq.beta)[int(settle / BUDGET):]
     return {'steps': len(times), 'cold_ms': times[0] * 1e3,
             'p50_ms': float(np.percentile(t, 50)), 'p95_ms': float(np.percentile(t, 95)),
             'p99_ms': float(np.percentile(t, 99)), 'max_ms': float(t.max()),
@@ -255,7 +256,7 @@ def report(name: str, r: dict) -> None:
     print(f'{name}: {r["steps"]} steps; solve time p50 {r["p50_ms"]:.2f} p95 {r["p95_ms"]:.2f} '
           f'p99 {r["p99_ms"]:.2f} max {r["max_ms"]:.2f} ms (cold {r["cold_ms"]:.1f} ms); '
           f'p99 / 20 ms budget = {r["p99_over_budget"]:.3f}; failures {r["failures"]}; beta error '
-          f'after 3 s rms {r["beta_err_rms_deg"]:.2f} max {r["beta_err_max_deg"]:.2f} deg',
+          f'after settling rms {r["beta_err_rms_deg"]:.2f} max {r["beta_err_max_deg"]:.2f} deg',
           flush=True)
 
 

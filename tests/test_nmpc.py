@@ -293,3 +293,25 @@ def test_solvers_agree(vp, eq30, method, qp):
         assert out.success, (method, qp, out.status)
         costs.append(out.cost)
     assert costs[1] == pytest.approx(costs[0], rel=1e-4)
+
+
+def test_drift_entry_from_grip_on_a_ramped_reference(nmpc, plant, vp):
+    """From a 9 m/s grip turn, a reference ramped at 1 rad/s (as the selector limits it)."""
+    from drift_control.eqmap import load_map
+    from drift_control.params import config_dir
+    map_file = config_dir().parent / 'maps' / 'dry.npz'
+    if not map_file.exists():
+        pytest.skip('no maps/dry.npz')
+    eqmap = load_map(map_file)
+    nmpc.reset()
+    x = np.zeros(9)
+    x[:6] = [9.0, -0.02, 0.6, 9.0 / vp.R_F, 9.0 / vp.R_R, 0.05]
+    for k in range(int(3.0 / TS)):
+        now = k * TS
+        beta_abs = min(float(eqmap.beta_abs[0]) + 1.0 * now, math.radians(30.0))
+        eq, _ = eqmap.lookup(beta_abs, 15.0, Direction.LEFT)
+        res = nmpc.step(measure(x, now), Reference(now, eq, Direction.LEFT), now)
+        assert res.status == NmpcStatus.OK, res.message
+        x = np.asarray(plant(x, [res.command.delta_rate, res.command.drive_torque],
+                             [0.0, 1.0])).ravel()
+    assert abs(math.degrees(x[1]) + 30.0) < 1.0 and x[5] < 0.0, 'a counter-steered 30 deg drift'
