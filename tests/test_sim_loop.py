@@ -46,6 +46,15 @@ def test_gate_waits_for_the_command_of_the_step_and_reports_timeouts():
     assert not gate.ready(0.06, 7.0) and gate.ready(0.06, 7.6) and gate.timeouts == 2
 
 
+def test_gate_can_wait_for_the_reference_of_the_state_too():
+    gate = LockstepGate(0.01, 0.02, 0.5, 5.0, wait_reference=True)
+    gate.offer(Command(0.02, 0.0, 0.0, 0.0))
+    gate.offer_reference(0.0)
+    assert not gate.ready(0.02, 0.0), 'command without a reference of this period'
+    gate.offer_reference(0.01)
+    assert gate.ready(0.02, 0.1) and gate.timeouts == 0
+
+
 def test_driver_steers_through_its_reaction_delay():
     drift_circle = 'path={type: circle, radius: 15.0, sideslip: {beta_deg: 30.0}}'
     loaded = load_scenario('semi_auto_dry', [drift_circle])

@@ -25,7 +25,8 @@ def test_lockstep_advances_only_on_commands(env):
 
     proc = subprocess.Popen([sys.executable, '-m', 'drift_sim.nodes.sim_node', '--ros-args',
                              '-p', 'scenario:=steady_dry', '-p', 'clock_mode:=lockstep',
-                             '-p', 'startup_timeout:=60.0', '-p', 'lockstep_timeout:=60.0'],
+                             '-p', 'startup_timeout:=60.0', '-p', 'lockstep_timeout:=60.0',
+                             '-p', 'wait_reference:=false'],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = rclpy.create_node('sim_test')

@@ -24,11 +24,15 @@ class LockstepGate:
         Longest wall-clock wait for a command once the controller is running [s].
     startup_timeout : float
         Longest wall-clock wait for the very first command [s].
+    wait_reference : bool
+        Also wait for a reference of a state after the previous command step.
     """
 
     def __init__(self, dt: float, command_period: float, timeout: float,
-                 startup_timeout: float):
+                 startup_timeout: float, wait_reference: bool = False):
         self.dt, self.timeout, self.startup_timeout = dt, timeout, startup_timeout
+        self.wait_reference = wait_reference
+        self.reference_stamp = -float('inf')
         self.every = max(1, int(round(command_period / dt)))
         self.command: Command | None = None
         self.timeouts = 0
@@ -38,6 +42,10 @@ class LockstepGate:
         """A command arrived."""
         self.command = command
 
+    def offer_reference(self, stamp: float) -> None:
+        """A reference for the state at ``stamp`` [s] arrived."""
+        self.reference_stamp = max(self.reference_stamp, stamp)
+
     def expects(self, t: float) -> bool:
         """A command for sim time ``t`` [s] is due before stepping on."""
         k = int(round(t / self.dt))
@@ -45,8 +53,11 @@ class LockstepGate:
 
     def ready(self, t: float, wall: float) -> bool:
         """May the simulator step from sim time ``t``? ``wall`` is a monotonic clock [s]."""
-        if not self.expects(t) or (self.command is not None
-                                   and self.command.stamp >= t - 0.5 * self.dt):
+        eps = 0.5 * self.dt
+        have = (self.command is not None and self.command.stamp >= t - eps
+                and (not self.wait_reference
+                     or self.reference_stamp > t - self.every * self.dt + eps))
+        if not self.expects(t) or have:
             self._wait_since = None
             return True
         if self._wait_since is None:

@@ -2,7 +2,7 @@
 import time
 
 import rclpy
-from drift_msgs.msg import DriftCommand, VehicleState
+from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -32,6 +32,7 @@ class SimNode(Node):
         period = self.declare_parameter('command_period', 0.02).value
         timeout = self.declare_parameter('lockstep_timeout', 1.0).value
         startup = self.declare_parameter('startup_timeout', 120.0).value
+        wait_reference = self.declare_parameter('wait_reference', True).value
         io = self.declare_parameter('io', 'ros').value
         can_interface = self.declare_parameter('can_interface', 'virtual').value
         can_channel = self.declare_parameter('can_channel', 'drift').value
@@ -40,7 +41,7 @@ class SimNode(Node):
         loaded = load_scenario(scenario, [o for o in overrides if o], cfg,
                                seed=None if seed < 0 else seed)
         self._sim = Simulator(loaded)
-        self._gate = LockstepGate(self._sim.dt, period, timeout, startup)
+        self._gate = LockstepGate(self._sim.dt, period, timeout, startup, wait_reference)
         self._command = None
         self._reported = 0
         self._can = None
@@ -57,6 +58,8 @@ class SimNode(Node):
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
         self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable)
+        self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
+                                 offer_reference(convert.time_from_msg(m.header.stamp)), 10)
         if self._can is None:
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
