@@ -176,7 +176,8 @@ COMPARE = [   # (label, solver overrides, model overrides)
     ('sqpmethod qpoases max_iter=1 gcc', {'method': 'sqp', 'qp_solver': 'qpoases'}, {}),
     ('sqpmethod qrqp converged gcc', {'method': 'sqp', 'qp_solver': 'qrqp', 'max_iter': 30}, {}),
     ('ipopt converged gcc', {'method': 'ipopt', 'max_iter': 100}, {}),
-    ('fatrop converged', {'method': 'fatrop', 'max_iter': 100, 'codegen': False}, {}),
+    ('fatrop converged gcc', {'method': 'fatrop', 'max_iter': 100}, {}),
+    ('fatrop converged interpreted', {'method': 'fatrop', 'max_iter': 100, 'codegen': False}, {}),
 ]
 
 

@@ -231,9 +231,10 @@ def test_nan_state_falls_back_within_one_cycle(vp, params, eq30):
 
 def test_no_input_at_start_releases_the_actuators(nmpc, eq30):
     nmpc.reset()
-    res = nmpc.step(None, Reference(0.0, eq30), 0.0)
-    assert res.status == NmpcStatus.NO_INPUT and res.command.mode == Mode.OFF
-    assert res.command.drive_torque == 0.0
+    for k in range(3):
+        res = nmpc.step(None, Reference(k * TS, eq30), k * TS)
+        assert res.status == NmpcStatus.NO_INPUT and res.command.mode == Mode.OFF
+        assert res.command.drive_torque == 0.0
 
 
 # --- torque-only mode ------------------------------------------------------------------------------

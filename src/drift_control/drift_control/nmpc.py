@@ -91,6 +91,7 @@ class Nmpc:
         self._age = 0                        # cycles since that solution
         self._failures = 0
         self._last: Command | None = None
+        self._engaged = False                # a solve has succeeded since the reset
 
     # --- one cycle -----------------------------------------------------------------------------
     def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
@@ -148,7 +149,7 @@ class Nmpc:
             error = 'solver returned non-finite values'
         if error is not None:
             return self._failed(state, ref, now, error, solve_time, out.iterations if out else 0)
-        self._w, self._age, self._failures = out.w, 0, 0
+        self._w, self._age, self._failures, self._engaged = out.w, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
         command = self._command_from_plan(X_pred, U_pred, 0, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
@@ -184,7 +185,7 @@ class Nmpc:
             return NmpcResult(command, False, NmpcStatus.SHIFTED, solve_time, iterations,
                               math.nan, X_pred[:, :NXO], U_pred,
                               f'{reason}; shifted plan ({self._age})', self._failures)
-        if self._last is None:   # never acted: keep the actuators released
+        if not self._engaged:   # never acted: keep the actuators released
             delta = state.delta if state is not None and math.isfinite(state.delta) else 0.0
             command = Command(now, self._clip_delta(delta), 0.0, 0.0, Mode.OFF)
             return NmpcResult(command, False, NmpcStatus.NO_INPUT, solve_time, iterations,

@@ -183,7 +183,7 @@ class NlpSolver:
         nlp = {'x': ws, 'p': p, 'f': J_fn(ws, p), 'g': g}
         self.ng = g.shape[0]
         source = nlp
-        if sp.codegen and plugin != 'fatrop':   # fatrop reads its structure from the symbols
+        if sp.codegen:
             so = compile_cached(ca.nlpsol('nmpc_nlp', plugin, nlp, self._options(sp, 5)),
                                 f'nmpc_nlp_{plugin}', sp, dependencies=True)
             source = str(so) if so is not None else nlp
