@@ -237,7 +237,7 @@ def test_no_input_at_start_releases_the_actuators(nmpc, eq30):
         assert res.command.drive_torque == 0.0
 
 
-# --- torque-only mode ------------------------------------------------------------------------------
+# --- torque-only mode --------------------------------------------------------------------------
 
 def test_torque_only_keeps_the_measured_steering(vp, params, plant, eq30):
     """The driver steers (a slow P controller on beta); the NMPC's own delta is a proposal."""

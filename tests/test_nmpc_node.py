@@ -45,7 +45,7 @@ def test_node_publishes_a_finite_command(env, trigger):
                          delta=-0.3833, drive_torque=1434.0)
         while not any(s.status == NmpcStatus.STATUS_OK for s in statuses):
             assert proc.poll() is None, proc.stdout.read()
-            assert time.monotonic() < deadline, f'no OK status; got {[s.message for s in statuses[-3:]]}'
+            assert time.monotonic() < deadline, [s.message for s in statuses[-3:]]
             stamp = node.get_clock().now().to_msg()
             state = VehicleState(v=10.2, beta=-0.45, r=0.65, wheel_speeds=[31.0, 31.0, 40.0, 40.0],
                                  delta=-0.35, validity=VehicleState.VALID_ALL)

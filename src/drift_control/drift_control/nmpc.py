@@ -241,7 +241,7 @@ class Nmpc:
 
 
 def reference_rows(ref: Reference, N: int) -> np.ndarray:
-    """(N+1, 7) reference rows: ``ref.horizon`` per stage (padded with its last), else the target."""
+    """(N+1, 7) reference rows: ``ref.horizon`` per stage (padded with its last), else target."""
     rows = [ref.horizon[min(k, len(ref.horizon) - 1)] if ref.horizon else ref.target
             for k in range(N + 1)]
     out = np.array([[e.V, e.beta, e.r, e.omega_F, e.omega_R, e.delta, e.T_R] for e in rows])

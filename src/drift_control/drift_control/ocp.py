@@ -10,19 +10,21 @@ Decision vector, stage-interleaved for the structure-exploiting solvers::
     x = (V, beta, r, omega_F, omega_R, delta, T_last),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu]``, so one compiled solver serves every reference, surface and mode. Every cost term is a squared residual
-``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector directly.
+mu]``, so one compiled solver serves every reference, surface and mode. Every cost term is a
+squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal, NamedTuple
 
 import casadi as ca
 import numpy as np
 
-from drift_control.params import ParamError, VehicleParams, from_dict, load_yaml, require
+from drift_control.params import (ParamError, VehicleParams, config_dir, from_dict, load_yaml,
+                                   require)
 from drift_control.vehicle import N_VEHICLE, NTHETA, NU, U, X, VehicleModel, rk4_step
 
 NXO = N_VEHICLE            # vehicle states in the OCP: V, beta, r, omega_F, omega_R, delta
@@ -121,9 +123,6 @@ class NmpcParams:
 
 def load_nmpc_params(path=None) -> NmpcParams:
     """Load ``config/nmpc.yaml`` (or ``path``); a wrong key is a ParamError naming it."""
-    from pathlib import Path
-
-    from drift_control.params import config_dir
     path = Path(path) if path else config_dir() / 'nmpc.yaml'
     return from_dict(NmpcParams, load_yaml(path), path.stem)
 
@@ -256,7 +255,7 @@ class Ocp:
         return np.concatenate([refs.ravel(), [mu]])
 
     def bounds_for(self, x_init, hold_stages: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (7: with T_last), delta, delta_dot, T_R limited.
+        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (with T_last); delta, delta_dot, T_R limited.
 
         ``hold_stages`` first stages get ``delta_dot = 0`` (a driver who holds the wheel).
         """

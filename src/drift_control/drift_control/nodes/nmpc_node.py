@@ -22,7 +22,7 @@ LEVEL = {Status.OK: DiagnosticStatus.OK, Status.SHIFTED: DiagnosticStatus.WARN,
 
 
 class NmpcNode(Node):
-    """Runs the NMPC every period (``trigger: timer``) or on every new state (``trigger: state``)."""
+    """Runs the NMPC every period (``trigger: timer``) or on each new state (``trigger: state``)."""
 
     def __init__(self):
         super().__init__('nmpc')
