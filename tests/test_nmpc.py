@@ -316,3 +316,17 @@ def test_drift_entry_from_grip_on_a_ramped_reference(nmpc, plant, vp):
         x = np.asarray(plant(x, [res.command.delta_rate, res.command.drive_torque],
                              [0.0, 1.0])).ravel()
     assert abs(math.degrees(x[1]) + 30.0) < 1.0 and x[5] < 0.0, 'a counter-steered 30 deg drift'
+
+
+def test_lockstep_trigger_once_per_period_with_the_matching_reference():
+    from drift_control.nmpc import LockstepTrigger
+    trig = LockstepTrigger(0.02, reference_wait=0.005)
+    assert not trig.on_state(0.0, wall=100.0), 'waits for the reference of this state'
+    assert trig.on_reference(0.0)
+    assert trig.fired() == 0.0
+    assert not trig.on_state(0.01, wall=100.01) and not trig.poll(100.05), 'not due yet'
+    assert not trig.on_state(0.02, wall=100.02)
+    assert not trig.poll(100.022)
+    assert trig.poll(100.026), 'no reference: solve anyway after reference_wait'
+    assert trig.fired() == 0.02
+    assert not trig.on_reference(0.02), 'nothing pending'

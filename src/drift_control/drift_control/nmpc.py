@@ -240,6 +240,47 @@ class Nmpc:
         return self._failures
 
 
+class LockstepTrigger:
+    """When to solve if states, not a timer, drive the NMPC (the simulator's lock-step mode).
+
+    Once per ``period`` of state time: at the first state stamped at or after the due time, as
+    soon as the reference computed for that state is in, or ``reference_wait`` (wall clock) later
+    with the latest reference, so a missing reference never stalls the loop.
+    """
+
+    EPS = 1e-3   # stamp tolerance [s]
+
+    def __init__(self, period: float, reference_wait: float = 0.005):
+        self.period, self.reference_wait = period, reference_wait
+        self._due = -math.inf
+        self._ref_stamp = -math.inf
+        self._pending: tuple[float, float] | None = None   # (state stamp, wall time it came)
+
+    def on_state(self, stamp: float, wall: float) -> bool:
+        """A state arrived; True: solve now."""
+        if stamp >= self._due - self.EPS:
+            self._pending = (stamp, wall)
+        return self._ready()
+
+    def on_reference(self, stamp: float) -> bool:
+        """A reference for the state at ``stamp`` arrived; True: solve now."""
+        self._ref_stamp = max(self._ref_stamp, stamp)
+        return self._ready()
+
+    def poll(self, wall: float) -> bool:
+        """True when a due state has waited ``reference_wait`` for its reference."""
+        return self._pending is not None and wall - self._pending[1] >= self.reference_wait
+
+    def fired(self) -> float:
+        """The solve for the pending state is done; returns that state's stamp."""
+        stamp = self._pending[0]
+        self._due, self._pending = stamp + self.period, None
+        return stamp
+
+    def _ready(self) -> bool:
+        return self._pending is not None and self._ref_stamp >= self._pending[0] - self.EPS
+
+
 def reference_rows(ref: Reference, N: int) -> np.ndarray:
     """(N+1, 7) reference rows: ``ref.horizon`` per stage (padded with its last), else target."""
     rows = [ref.horizon[min(k, len(ref.horizon) - 1)] if ref.horizon else ref.target
@@ -249,4 +290,4 @@ def reference_rows(ref: Reference, N: int) -> np.ndarray:
     return out
 
 
-__all__ = ['INPUT_NAMES', 'STATE_NAMES', 'Nmpc', 'NmpcResult', 'NmpcStatus', 'reference_rows']
+__all__ = ['INPUT_NAMES', 'STATE_NAMES', 'LockstepTrigger', 'Nmpc', 'NmpcResult', 'NmpcStatus', 'reference_rows']

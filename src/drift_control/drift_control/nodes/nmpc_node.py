@@ -1,15 +1,18 @@
 """NMPC node: vehicle/state + drift/reference -> Nmpc.step -> drift/command, status, diagnostics."""
 import os
 import sys
+import time
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from drift_msgs.msg import DriftCommand, DriftReference, NmpcStatus, VehicleState
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.time import Time
 
-from drift_control.nmpc import Nmpc
+from drift_control.nmpc import LockstepTrigger, Nmpc
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
 from drift_control.ocp import load_nmpc_params
@@ -45,26 +48,38 @@ class NmpcNode(Node):
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
         self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        self._state_triggered = trigger == 'state'
+        self._trigger = LockstepTrigger(params.Ts) if trigger == 'state' else None
         self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
                                  qos_profile_sensor_data)
         self.create_subscription(DriftReference, 'drift/reference', self._on_ref, 10)
-        if not self._state_triggered:
+        if self._trigger is None:
             self.create_timer(params.Ts, self._on_tick)   # node clock: honours use_sim_time
+        else:   # wall clock: sim time stands still while the simulator waits for us
+            self.create_timer(0.002, self._poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f'{mode} on {surface.name} (mu {surface.mu:g}), trigger {trigger}, '
                                f'solver {params.solver.method}/{params.solver.qp_solver}')
 
     def _on_state(self, msg):
         self._state = convert.state_from_msg(msg)
-        if self._state_triggered:
+        if self._trigger and self._trigger.on_state(self._state.stamp, time.monotonic()):
             self._on_tick()
 
     def _on_ref(self, msg):
         self._ref = convert.reference_from_msg(msg)
+        if self._trigger and self._trigger.on_reference(self._ref.stamp):
+            self._on_tick()
+
+    def _poll(self):
+        if self._trigger.poll(time.monotonic()):
+            self._on_tick()
 
     def _on_tick(self):
         now = self.get_clock().now()
+        if self._trigger:   # stamp with the state's time: /clock may not be in yet
+            stamp = self._trigger.fired()
+            if stamp > now.nanoseconds * 1e-9:
+                now = Time(nanoseconds=int(round(stamp * 1e9)), clock_type=now.clock_type)
         result = self._nmpc.step(self._state, self._ref, now.nanoseconds * 1e-9)
         self._cmd_pub.publish(convert.command_to_msg(result.command, now))
         self._status_pub.publish(convert.status_to_msg(result, now))
