@@ -131,7 +131,7 @@ def run(args) -> dict:
 
     state = sim.reset()
     command, ref = None, None
-    log = {k: [] for k in ('t', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 'mu', 'beta_ref',
+    log = {k: [] for k in ('t', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu', 'beta_ref',
                            'beta_des', 'delta_cmd', 'T_cmd')}
     solve_times = []
     bar = None
@@ -151,6 +151,7 @@ def run(args) -> dict:
         st = tr.state
         for key, value in (('t', tr.t), ('V', st.V), ('beta', st.beta), ('r', st.r),
                            ('delta', st.delta), ('T', st.drive_torque), ('e_y', tr.e_y),
+                           ('s', tr.s),
                            ('mu', tr.mu), ('beta_des', tr.beta_des),
                            ('beta_ref', ref.target.beta if ref is not None else math.nan),
                            ('delta_cmd', command.delta if command else math.nan),
@@ -171,6 +172,8 @@ def run(args) -> dict:
     out = metrics.summary(data['t'], data['beta'], beta_ref, data['e_y'], sc.metrics.steady,
                           sc.metrics.transient_end, math.radians(sc.metrics.drift_beta_deg),
                           solve_times, wall)
+    out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
+                                               loaded.path.length)
     out.update(scenario=sc.name, seed=sim.plant.seed, controller=args.controller,
                overrides=list(args.set), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=args.plant,

@@ -41,6 +41,8 @@ class ReferenceParams:
     radius_max: float             # largest radius of the map; straighter blends left/right [m]
     k_i: float = 0.0              # lateral error integral gain [1/(m^2 s)]
     integral_limit: float = 1.0   # anti-windup bound on int e_y dt [m s]
+    integral_band: float = 1.5    # integrate e_y only while |e_y| is below this [m] ...
+    integral_beta_band: float = 0.05   # ... and |beta - beta_ref| below this [rad]
     correction_limit: float = 0.05     # bound on |K_cmd - K(s)| [1/m]
     curvature_rate_max: float = 0.5    # bound on |dK_cmd/dt| [1/(m s)]
     beta_rate_max: float = 1.0         # bound on |d beta_ref/dt| [rad/s]
@@ -165,8 +167,13 @@ class ReferenceSelector:
         K_raw = fp.K - correction
         K_cmd = max(-k_max, min(k_max, K_raw))
         saturated = K_cmd != K_raw or abs(correction) >= p.correction_limit
-        # anti-windup: integrate only while the integral does not push further into a limit
-        if not (saturated and fp.e_y * self._integral > 0.0):
+        # anti-windup: integrate only once the car is settled near the path and on its sideslip
+        # reference (the grip phase and the entry are the P and D terms' job: an integral wound
+        # up there spins the car at the entry) and only while it does not push into a limit
+        settled = (abs(fp.e_y) < p.integral_band and last is not None
+                   and abs(abs(state.beta) - abs(last.target.beta)) < p.integral_beta_band
+                   and abs(last.target.beta) > p.integral_beta_band)
+        if settled and not (saturated and fp.e_y * self._integral > 0.0):
             self._integral = max(-p.integral_limit,
                                  min(p.integral_limit, self._integral + fp.e_y * dt))
         if limited:

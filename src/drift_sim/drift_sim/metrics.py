@@ -55,6 +55,17 @@ def time_in_drift(t, beta, threshold: float) -> float:
     return float(np.sum(dt[(beta > threshold) & (beta <= SPIN_BETA)]))
 
 
+def laps(t, s, windows, lap_length: float) -> float:
+    """Laps of the path driven inside the windows: arc length travelled / lap length [-]."""
+    t, s = np.asarray(t, dtype=float), np.asarray(s, dtype=float)
+    travelled = 0.0
+    for t0, t1 in windows:
+        sel = s[(t >= t0) & (t < t1)]
+        if sel.size > 1:
+            travelled += float(sel[-1] - sel[0])
+    return travelled / lap_length if lap_length > 0 else math.nan
+
+
 def percentiles(values, qs=(50, 99)) -> dict:
     """``{'p50': ..., 'p99': ...}`` of ``values``; NaN for no samples."""
     values = np.asarray(values, dtype=float)
