@@ -46,7 +46,8 @@ def reference_equilibrium(vehicle, surface: str, beta_deg: float, radius: float)
 
 
 class DoMpcController:
-    """do-mpc on the same OCP: discrete model with the NMPC's RK4 stage, same cost and bounds."""
+    """do-mpc on the same OCP: discrete model with the NMPC's RK4 stage (vehicle states and the
+    powertrain lag state), same cost and bounds; without our offset-free model-error estimate."""
 
     def __init__(self, vehicle, params: NmpcParams, mu: float):
         import casadi as ca
@@ -60,17 +61,17 @@ class DoMpcController:
         ocp = Ocp(vehicle, params)
         c, b = params.cost, ocp.bounds
         model = do_mpc.model.Model('discrete', 'SX')
-        names = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta')
+        names = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta', 'T_act')
         x = ca.vertcat(*[model.set_variable('_x', n) for n in names])
         u = ca.vertcat(model.set_variable('_u', 'delta_dot'), model.set_variable('_u', 'T_R'))
         ref = model.set_variable('_tvp', 'ref', shape=(7, 1))
         mu_p = model.set_variable('_p', 'mu')
-        x_next = ocp.F(ca.vertcat(x, 0.0), u, mu_p)[:NXO]
+        x_next = ocp.F(ca.vertcat(x, 0.0), u, mu_p)[:NXO + 1]   # T_last: do-mpc's r-term
         for i, n in enumerate(names):
             model.set_rhs(n, x_next[i])
         model.setup()
         # after setup the objective must use the model's own structured symbols
-        x = ca.vertcat(*[model.x[n] for n in names])
+        x = ca.vertcat(*[model.x[n] for n in names[:NXO]])
         u = ca.vertcat(model.u['delta_dot'], model.u['T_R'])
         ref = model.tvp['ref']
         scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
@@ -103,10 +104,13 @@ class DoMpcController:
         mpc.set_tvp_fun(tvp_fun)
         mpc.setup()
         self.mpc, self.params, self._started = mpc, params, False
+        self._T_act = 0.0
 
     def step(self, state: VehicleState, ref: Reference, now: float):
+        if not self._started:
+            self._T_act = ref.target.T_R
         x0 = np.array([[state.V], [state.beta], [state.r], [state.omega_F], [state.omega_R],
-                       [state.delta]])
+                       [state.delta], [self._T_act]])
         self._ref = reference_rows(ref, self.params.N)[0]
         if not self._started:
             self.mpc.x0 = x0
@@ -117,16 +121,25 @@ class DoMpcController:
         u = np.asarray(self.mpc.make_step(x0)).ravel()
         dt = time.perf_counter() - t0
         ok = bool(self.mpc.solver_stats['success'])
+        lag = self.params.torque_lag   # the same torque model as the NMPC's
+        self._T_act = u[1] if lag <= 0 else self._T_act + (
+            1.0 - math.exp(-self.params.Ts / lag)) * (u[1] - self._T_act)
         return Command(now, state.delta + u[0] * self.params.Ts, u[0], u[1], Mode.FULL), ok, dt
 
 
-def closed_loop(step, vehicle, eq, seconds: float, mu: float, seed: int = 0) -> dict:
-    """Run ``step(state, ref, now) -> (command, solved, solve_time)`` against the plant."""
-    plant = VehicleModel(vehicle).discrete(BUDGET, 20)
+def closed_loop(step, vehicle, eq, seconds: float, mu: float, seed: int = 0,
+                actuator: bool = False) -> dict:
+    """Run ``step(state, ref, now) -> (command, solved, solve_time)`` against the plant.
+
+    ``actuator``: the drive torque reaches the wheels through a powertrain of the car class
+    (request delay 30 ms, then a first-order lag of 80 ms), stepped at 10 ms.
+    """
+    plant = VehicleModel(vehicle).discrete(BUDGET / 2, 10)
     rng = np.random.default_rng(seed)
     x = np.zeros(9)
     x[:6] = [0.95 * eq.V, eq.beta + 0.1, 0.8 * eq.r, eq.omega_F, 0.95 * eq.omega_R,
              eq.delta + 0.05]
+    pipe, torque = [eq.T_R] * (3 if actuator else 0), eq.T_R
     times, failures, beta = [], 0, []
     for k in range(int(round(seconds / BUDGET))):
         now = k * BUDGET
@@ -138,8 +151,12 @@ def closed_loop(step, vehicle, eq, seconds: float, mu: float, seed: int = 0) -> 
         command, solved, solve_time = step(state, Reference(now, eq, Direction.LEFT), now)
         times.append(solve_time)
         failures += not solved
-        x = np.asarray(plant(x, [command.delta_rate, command.drive_torque], [0.0, 0.95 * mu]))
-        x = x.ravel()
+        for _ in range(2):
+            pipe.append(command.drive_torque)
+            request = pipe.pop(0)
+            torque = torque + (1.0 - math.exp(-0.01 / 0.08)) * (request - torque) if actuator \
+                else request
+            x = np.asarray(plant(x, [command.delta_rate, torque], [0.0, 0.95 * mu])).ravel()
         beta.append(x[1])
     t = np.array(times[1:]) * 1e3   # the first (cold) solve is reported apart
     settle = min(3.0, seconds / 2)   # tracking error counted after this [s]
@@ -181,7 +198,8 @@ COMPARE = [   # (label, solver overrides, model overrides)
 ]
 
 
-def compare(vehicle, base: NmpcParams, eq, seconds: float, mu: float) -> list[dict]:
+def compare(vehicle, base: NmpcParams, eq, seconds: float, mu: float,
+            actuator: bool = False) -> list[dict]:
     rows = []
     for label, solver_kw, model_kw in COMPARE:
         params = dataclasses.replace(base, solver=dataclasses.replace(base.solver, **solver_kw),
@@ -195,7 +213,7 @@ def compare(vehicle, base: NmpcParams, eq, seconds: float, mu: float) -> list[di
             continue
         build = time.perf_counter() - t0
         row = {'solver': label, 'build_s': build,
-               **closed_loop(nmpc_step(ctrl), vehicle, eq, seconds, mu)}
+               **closed_loop(nmpc_step(ctrl), vehicle, eq, seconds, mu, actuator=actuator)}
         rows.append(row)
         print(f'{label:50s} p50 {row["p50_ms"]:7.2f}  p99 {row["p99_ms"]:7.2f}  max '
               f'{row["max_ms"]:7.2f} ms  fail {row["failures"]:3d}  beta rms '
@@ -212,6 +230,8 @@ def main(argv=None) -> int:
     ap.add_argument('--no-dompc', action='store_true', help='skip the do-mpc baseline')
     ap.add_argument('--compare', action='store_true', help='also measure every solver option')
     ap.add_argument('--compare-seconds', type=float, default=4.0)
+    ap.add_argument('--actuator', action='store_true',
+                    help='plant with a powertrain: 30 ms request delay, 80 ms torque lag')
     ap.add_argument('--json', help='write the figures to this file')
     args = ap.parse_args(argv)
 
@@ -223,19 +243,22 @@ def main(argv=None) -> int:
           f'{0.95 * mu:.3f}), reference {source}; {os.cpu_count()} cores, load '
           f'{load[0]:.2f} {load[1]:.2f}', flush=True)
     out = {'scenario': {'beta_deg': args.beta_deg, 'radius': args.radius, 'surface': args.surface,
-                        'seconds': args.seconds, 'loadavg': load, 'cores': os.cpu_count()},
+                        'seconds': args.seconds, 'actuator': args.actuator, 'loadavg': load,
+                        'cores': os.cpu_count()},
            'config': dataclasses.asdict(params)}
     t0 = time.perf_counter()
     ctrl = Nmpc(vehicle, params, mu=mu)
     print(f'NMPC {params.solver.method}/{params.solver.qp_solver} codegen '
           f'{params.solver.codegen}: build {time.perf_counter() - t0:.1f} s', flush=True)
-    out['nmpc'] = ours = closed_loop(nmpc_step(ctrl), vehicle, eq, args.seconds, mu)
+    out['nmpc'] = ours = closed_loop(nmpc_step(ctrl), vehicle, eq, args.seconds, mu,
+                                     actuator=args.actuator)
     report('NMPC', ours)
     if not args.no_dompc:
         t0 = time.perf_counter()
         base = DoMpcController(vehicle, params, mu)
         print(f'do-mpc build {time.perf_counter() - t0:.1f} s', flush=True)
-        out['do_mpc'] = theirs = closed_loop(base.step, vehicle, eq, args.seconds, mu)
+        out['do_mpc'] = theirs = closed_loop(base.step, vehicle, eq, args.seconds, mu,
+                                             actuator=args.actuator)
         report('do-mpc', theirs)
         out['speedup_p50'] = theirs['p50_ms'] / ours['p50_ms']
         out['speedup_p99'] = theirs['p99_ms'] / ours['p99_ms']
@@ -247,7 +270,7 @@ def main(argv=None) -> int:
     out['goals'] = goals
     print('goals: ' + ', '.join(f'{k}: {"met" if v else "MISSED"}' for k, v in goals.items()))
     if args.compare:
-        out['compare'] = compare(vehicle, params, eq, args.compare_seconds, mu)
+        out['compare'] = compare(vehicle, params, eq, args.compare_seconds, mu, args.actuator)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2, default=str))
     return 0

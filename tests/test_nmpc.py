@@ -286,7 +286,7 @@ def test_solvers_agree(vp, eq30, method, qp):
     for s in (ref_sp, sp):
         ocp = Ocp(vp, NmpcParams(solver=s))
         from drift_control.ocp_solvers import make_solver
-        x0 = np.r_[perturbed_start(eq30)[:6], eq30.T_R]
+        x0 = np.r_[perturbed_start(eq30)[:6], eq30.T_R, eq30.T_R]
         rows = reference_rows(Reference(0.0, eq30), ocp.N)
         lb, ub = ocp.bounds_for(x0)
         w0 = ocp.join(np.tile(x0, (ocp.N + 1, 1)), np.tile([0.0, eq30.T_R], (ocp.N, 1)))

@@ -16,7 +16,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from drift_control.ocp import NREF, NS, NXO, S_T_LAST, NmpcParams, Ocp
+from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
 from drift_control.ocp_solvers import make_solver
 from drift_control.params import VehicleParams
 from drift_control.signals import Command, Mode, Reference, Validity, VehicleState
@@ -92,6 +92,9 @@ class Nmpc:
         self._failures = 0
         self._last: Command | None = None
         self._engaged = False                # a solve has succeeded since the reset
+        self._T_act = 0.0                    # modelled torque at the wheels [Nm]
+        self._d = np.zeros(NXO)              # model error per stage (offset-free tracking)
+        self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
 
     # --- one cycle -----------------------------------------------------------------------------
     def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
@@ -102,7 +105,18 @@ class Nmpc:
         else:
             result = self._failed(state, ref, now, problem, solve_time=0.0, iterations=0)
         self._last = result.command
+        self._T_act = self._propagate_torque(result.command.drive_torque, state)
         return replace(result, stage_dt=self.params.Ts)
+
+    def _propagate_torque(self, request: float, state) -> float:
+        """Wheel torque after one period of ``request`` through the powertrain lag (exact)."""
+        lag = self.params.torque_lag
+        if lag <= 0.0:
+            return request
+        start = self._T_act if self._engaged else (
+            state.drive_torque if state is not None and state.has(Validity.DRIVE_TORQUE)
+            and math.isfinite(state.drive_torque) else request)
+        return start + (1.0 - math.exp(-self.params.Ts / lag)) * (request - start)
 
     def _input_problem(self, state, ref, now) -> str | None:
         """Why the inputs cannot be used, or None."""
@@ -125,13 +139,16 @@ class Nmpc:
 
     def _solve(self, state: VehicleState, ref: Reference, now: float) -> NmpcResult:
         ocp, N = self.ocp, self.params.N
-        T_last = self._last.drive_torque if self._last is not None else (
-            state.drive_torque if state.has(Validity.DRIVE_TORQUE) else ref.target.T_R)
-        x_init = np.array([state.V, state.beta, state.r, state.omega_F, state.omega_R,
-                           state.delta, T_last])
-        x_init = ocp.clip_initial_state(x_init)
-        x_init[S_T_LAST] = np.clip(x_init[S_T_LAST], self.bounds.T_R_min, self.bounds.T_R_max)
-        p = ocp.pack_params(reference_rows(ref, N), self.mu)
+        measured = state.drive_torque if state.has(Validity.DRIVE_TORQUE) else ref.target.T_R
+        T_last = self._last.drive_torque if self._last is not None else measured
+        # torque at the wheels: our own lag model of the requests while engaged (it knows the
+        # requests still on their way), the measured torque when starting (cold)
+        T_act = self._T_act if self._w is not None else measured
+        x_init = ocp.clip_initial_state([state.V, state.beta, state.r, state.omega_F,
+                                         state.omega_R, state.delta, T_act, T_last])
+        self._T_act = x_init[S_T_ACT]
+        self._update_disturbance(x_init)
+        p = ocp.pack_params(reference_rows(ref, N), self.mu, self._d)
         lbw, ubw = ocp.bounds_for(x_init, self._hold)
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
@@ -151,6 +168,7 @@ class Nmpc:
             return self._failed(state, ref, now, error, solve_time, out.iterations if out else 0)
         self._w, self._age, self._failures, self._engaged = out.w, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
+        self._x1_pred = X_pred[1, :NXO].copy()
         command = self._command_from_plan(X_pred, U_pred, 0, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
@@ -161,7 +179,7 @@ class Nmpc:
         N = self.params.N
         T = np.clip(ref.target.T_R, self.bounds.T_R_min, self.bounds.T_R_max)
         states = np.tile(x_init, (N + 1, 1))
-        states[1:, S_T_LAST] = T
+        states[1:, S_T_LAST] = states[1:, S_T_ACT] = T
         return self.ocp.join(states, np.tile([0.0, T], (N, 1)))
 
     def _shifted(self, w, shift: int) -> np.ndarray:
@@ -172,10 +190,25 @@ class Nmpc:
         idx_u = np.minimum(np.arange(n) + shift, n - 1)
         return self.ocp.join(states[idx_x], inputs[idx_u])
 
+    def _update_disturbance(self, x_init) -> None:
+        """Offset-free tracking: move ``d`` by a share of the last one-step prediction error.
+
+        The steering (the driver's in TORQUE_ONLY) is measured, never a model error. Only after
+        a cycle whose command came from a fresh solve (the prediction then matches what ran).
+        """
+        gain = self.params.disturbance_gain
+        if gain <= 0.0 or self._x1_pred is None:
+            return
+        error = np.asarray(x_init[:NXO]) - self._x1_pred
+        limit = np.asarray(self.params.disturbance_max)
+        self._d = np.clip(self._d + gain * error, -limit, limit)
+        self._x1_pred = None
+
     def _failed(self, state, ref, now, reason: str, solve_time: float,
                 iterations: int) -> NmpcResult:
         """A cycle without a usable solution: the shifted plan while it lasts, then fallback."""
         self._failures += 1
+        self._x1_pred = None
         N = self.params.N
         if self._w is not None and self._failures <= self.params.max_failures \
                 and self._age + 1 < N - self._hold:

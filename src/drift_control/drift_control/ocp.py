@@ -2,15 +2,18 @@
 
 Multiple shooting on the vehicle states of the single-track model (``vehicle.rhs``, RK4 with
 substeps per stage); the path states are left out, path following is the reference selector's
-job. The OCP state adds the torque of the previous stage, ``T_last`` (``T_last+ = T_R``), so the
-torque-rate penalty stays stage-wise and the QP keeps the OCP block structure HPIPM needs.
-Decision vector, stage-interleaved for the structure-exploiting solvers::
+job. The OCP state adds two torques: ``T_act``, the drive torque at the wheels, which follows the
+request ``T_R`` with the powertrain lag ``torque_lag`` (the car's engine lag and request delay;
+with 0 it is the request itself), and ``T_last``, the request of the previous stage
+(``T_last+ = T_R``), so the torque-rate penalty stays stage-wise and the QP keeps the OCP block
+structure HPIPM needs. Decision vector, stage-interleaved for the structure-exploiting solvers::
 
     w = [x_0, u_0, x_1, u_1, ..., x_{N-1}, u_{N-1}, x_N]
-    x = (V, beta, r, omega_F, omega_R, delta, T_last),  u = (delta_dot, T_R)
+    x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu]``, so one compiled solver serves every reference, surface and mode. Every cost term is a
+mu, d]`` (``d``: model error per stage, for offset-free tracking), so one compiled solver serves
+every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
 from __future__ import annotations
@@ -28,8 +31,9 @@ from drift_control.params import (ParamError, VehicleParams, config_dir, from_di
 from drift_control.vehicle import N_VEHICLE, NTHETA, NU, U, X, VehicleModel, rk4_step
 
 NXO = N_VEHICLE            # vehicle states in the OCP: V, beta, r, omega_F, omega_R, delta
-NS = NXO + 1               # OCP state: the vehicle states and T_last
-S_T_LAST = NXO             # index of T_last in an OCP state
+S_T_ACT = NXO              # index of T_act (torque at the wheels) in an OCP state
+S_T_LAST = NXO + 1         # index of T_last (previous torque request)
+NS = NXO + 2               # OCP state size
 NREF = 7                   # one Equilibrium: V, beta, r, omega_F, omega_R, delta, T_R
 REF_T_R = 6                # index of T_R in one reference row
 
@@ -108,6 +112,9 @@ class NmpcParams:
     fallback_torque_rate: float = 3000.0   # torque ramp-down rate in fallback [Nm/s]
     fallback_delta_rate: float = 0.3       # steering rate toward the reference delta [rad/s]
     torque_only_hold_stages: int = 1       # TORQUE_ONLY: stages the driver is assumed to hold
+    torque_lag: float = 0.0         # powertrain: first-order lag of the drive torque [s]; 0: none
+    disturbance_gain: float = 0.0   # offset-free: share of the prediction error taken per step
+    disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per stage
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
@@ -119,6 +126,10 @@ class NmpcParams:
                 'rates must be positive')
         require(0 <= self.torque_only_hold_stages < self.N, 'nmpc.torque_only_hold_stages',
                 'must be in [0, N)')
+        require(self.torque_lag >= 0, 'nmpc.torque_lag', 'must be >= 0')
+        require(0 <= self.disturbance_gain <= 1, 'nmpc.disturbance_gain', 'must be in [0, 1]')
+        require(len(self.disturbance_max) == NXO and min(self.disturbance_max) >= 0,
+                'nmpc.disturbance_max', f'must be {NXO} values >= 0 (V .. delta)')
 
 
 def load_nmpc_params(path=None) -> NmpcParams:
@@ -166,24 +177,30 @@ class Ocp:
         self.bounds = effective_bounds(vehicle, params)
         N, nz = params.N, NS + NU
         self.N, self.nw = N, N * nz + NS
-        self.np = (N + 1) * NREF + 1
+        self.np = (N + 1) * NREF + 1 + NXO
         model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
         self.model = model
         xs, us, mu_s = ca.SX.sym('x', NS), ca.SX.sym('u', NU), ca.SX.sym('mu')
-        # the OCP integrates the first N_VEHICLE model states; path states do not feed back, so
-        # they are held at zero and their derivatives dropped
-        x9, th = ca.SX.sym('x9', len(X)), ca.SX.sym('theta', NTHETA)
-        f_pad = ca.Function('f_pad', [x9, us, th], [ca.vertcat(model.f(x9, us, th)[:NXO],
-                                                              ca.SX.zeros(len(X) - NXO))])
+        # the OCP integrates the first N_VEHICLE model states (path states do not feed back: they
+        # are held at zero) and, with a powertrain lag, the torque at the wheels
+        lag = params.torque_lag
+        x7, u_req, th = ca.SX.sym('x7', NXO + 1), ca.SX.sym('u', NU), ca.SX.sym('theta', NTHETA)
+        x9 = ca.vertcat(x7[:NXO], ca.SX.zeros(len(X) - NXO))
+        T_act = x7[NXO]
+        u_wheel = ca.vertcat(u_req[U.DELTA_DOT], T_act if lag > 0 else u_req[U.T_R])
+        T_dot = (u_req[U.T_R] - T_act) / lag if lag > 0 else 0.0
+        f7 = ca.Function('f7', [x7, u_req, th],
+                         [ca.vertcat(model.f(x9, u_wheel, th)[:NXO], T_dot)])
         theta = ca.vertcat(0.0, mu_s)   # curvature unused: no path states in the OCP
-        x_end = rk4_step(f_pad, ca.vertcat(xs[:NXO], ca.SX.zeros(len(X) - NXO)), us, theta,
-                         params.Ts, params.substeps)[:NXO]
+        x_end = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, params.substeps)
+        T_act_end = x_end[NXO] if lag > 0 else us[U.T_R]
         #: one stage, ``F(x, u, mu) -> x_next`` on the OCP state (T_last+ = T_R)
-        self.F = ca.Function('F', [xs, us, mu_s], [ca.vertcat(x_end, us[U.T_R])],
+        self.F = ca.Function('F', [xs, us, mu_s],
+                             [ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])],
                              ['x', 'u', 'mu'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
-        refs, _ = self.unpack_params(self.p)
+        refs, _, _ = self.unpack_params(self.p)
         c = params.cost
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
         res = []
@@ -200,21 +217,23 @@ class Ocp:
         self.J = ca.sumsqr(self.residual)
 
     def gaps(self, w, p):
-        """Shooting gaps ``F(x_k, u_k, mu) - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u - x+``).
+        """Shooting gaps ``F(x_k, u_k, mu) + d - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u - x+``).
 
-        ``w`` and ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small
-        generated code).
+        ``d`` is the estimated model error per stage (offset-free tracking, ``Nmpc``). ``w`` and
+        ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small code).
         """
         nz = NS + NU
+        _, mu, d = self.unpack_params(p)
         body = ca.reshape(w[:self.N * nz], nz, self.N)
-        x_next = self.F.map(self.N)(body[:NS, :], body[NS:, :], p[self.np - 1])
+        x_next = self.F.map(self.N)(body[:NS, :], body[NS:, :], mu)
+        x_next = x_next + ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
         x_after = ca.horzcat(body[:NS, 1:], w[self.N * nz:])
         return ca.vec(x_next - x_after)
 
     # --- layout -------------------------------------------------------------------------------
     def state_scale(self) -> np.ndarray:
-        """Typical magnitudes of one OCP state (V, beta, r, omega_F, omega_R, delta, T_last)."""
-        return np.array([10.0, 0.5, 0.5, 30.0, 30.0, 0.3, 1000.0])
+        """Typical magnitudes of one OCP state (V, beta, r, omega_F, omega_R, delta, T_act, T_last)."""
+        return np.array([10.0, 0.5, 0.5, 30.0, 30.0, 0.3, 1000.0, 1000.0])
 
     def variable_scale(self) -> np.ndarray:
         """Typical magnitudes of every entry of ``w``, for solver scaling."""
@@ -232,30 +251,42 @@ class Ocp:
         return w[i:i + NU]
 
     def split(self, w) -> tuple[np.ndarray, np.ndarray]:
-        """Numeric ``w`` -> OCP states (N+1, 7) and inputs (N, 2)."""
+        """Numeric ``w`` -> OCP states (N+1, NS) and inputs (N, 2)."""
         w = np.asarray(w, dtype=float).ravel()
         body = w[:-NS].reshape(self.N, NS + NU)
         return np.vstack([body[:, :NS], w[-NS:]]), body[:, NS:].copy()
 
     def join(self, states, inputs) -> np.ndarray:
-        """OCP states (N+1, 7) and inputs (N, 2) -> ``w``."""
+        """OCP states (N+1, NS) and inputs (N, 2) -> ``w``."""
         body = np.hstack([np.asarray(states)[:-1], np.asarray(inputs)])
         return np.concatenate([body.ravel(), np.asarray(states)[-1]])
 
     def unpack_params(self, p):
-        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu)."""
+        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu, d)."""
+        n = (self.N + 1) * NREF
         refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
-        return refs, p[self.np - 1]
+        return refs, p[n], p[n + 1:n + 1 + NXO]
 
-    def pack_params(self, refs, mu: float) -> np.ndarray:
-        """Numeric parameter vector; ``refs`` is (N+1, 7) in Equilibrium field order."""
+    def pack_params(self, refs, mu: float, d=None) -> np.ndarray:
+        """Numeric parameter vector.
+
+        Parameters
+        ----------
+        refs : array (N+1, 7)
+            Reference per stage in Equilibrium field order.
+        mu : float
+            Surface friction [-].
+        d : array (6,), optional
+            Model error added to each stage's vehicle states (V .. delta); default zero.
+        """
         refs = np.asarray(refs, dtype=float)
         if refs.shape != (self.N + 1, NREF):
             raise ValueError(f'refs must be ({self.N + 1}, {NREF}), got {refs.shape}')
-        return np.concatenate([refs.ravel(), [mu]])
+        d = np.zeros(NXO) if d is None else np.asarray(d, dtype=float)
+        return np.concatenate([refs.ravel(), [mu], d])
 
     def bounds_for(self, x_init, hold_stages: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (with T_last); delta, delta_dot, T_R limited.
+        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (all NS); delta, delta_dot, T_R limited.
 
         ``hold_stages`` first stages get ``delta_dot = 0`` (a driver who holds the wheel).
         """
@@ -277,8 +308,11 @@ class Ocp:
         """Measured steering beyond the limit is taken at the limit (keeps the QP feasible)."""
         x = np.array(x_init, dtype=float)
         x[X.DELTA] = np.clip(x[X.DELTA], -self.bounds.delta_max, self.bounds.delta_max)
+        x[[S_T_ACT, S_T_LAST]] = np.clip(x[[S_T_ACT, S_T_LAST]], self.bounds.T_R_min,
+                                         self.bounds.T_R_max)
         return x
 
 
 __all__ = ['Bounds', 'CostScales', 'NmpcLimits', 'NmpcParams', 'Ocp', 'SolverParams',
-           'effective_bounds', 'load_nmpc_params', 'NREF', 'NS', 'NXO', 'S_T_LAST']
+           'effective_bounds', 'load_nmpc_params', 'NREF', 'NS', 'NXO', 'S_T_ACT',
+           'S_T_LAST']
