@@ -131,7 +131,8 @@ def run(args) -> dict:
 
     state = sim.reset()
     command, ref = None, None
-    log = {k: [] for k in ('t', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu', 'beta_ref',
+    log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu',
+                           'beta_ref',
                            'beta_des', 'delta_cmd', 'T_cmd')}
     solve_times = []
     bar = None
@@ -149,7 +150,8 @@ def run(args) -> dict:
         state = sim.step(command)
         tr = sim.sample()
         st = tr.state
-        for key, value in (('t', tr.t), ('V', st.V), ('beta', st.beta), ('r', st.r),
+        for key, value in (('t', tr.t), ('x', st.x), ('y', st.y), ('V', st.V),
+                           ('beta', st.beta), ('r', st.r),
                            ('delta', st.delta), ('T', st.drive_torque), ('e_y', tr.e_y),
                            ('s', tr.s),
                            ('mu', tr.mu), ('beta_des', tr.beta_des),

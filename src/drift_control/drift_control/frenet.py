@@ -21,6 +21,9 @@ _log = logging.getLogger(__name__)
 _HEADING_LENGTH = 2.0   # [m] a course error of 1 rad weighs like 2 m in a global search
 
 
+_WIDE_FACTOR = 3.0   # beyond this many lost_distances off the path, search it globally
+
+
 class FrenetPoint(NamedTuple):
     """A pose in path coordinates.
 
@@ -143,7 +146,10 @@ class Frenet:
         p = self.path
         self.points_examined = 0
         j, dist = (None, math.inf) if self._j is None else self._local(px, py)
-        if j is None or dist > self._lost:
+        # A car some metres off (a drift entry cuts inside the circle) keeps its continuous
+        # local projection: a global search would hand it to the other lap or branch of a path
+        # that passes itself (the alternating manoeuvre, a figure-8). Only far off search anew.
+        if j is None or dist > _WIDE_FACTOR * self._lost:
             if self._j is not None and not self.lost:
                 _log.warning('frenet: lost the path (%.1f m off), searching globally', dist)
             j, dist = self._global(px, py, yaw + beta)
