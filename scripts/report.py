@@ -1,0 +1,51 @@
+#!/usr/bin/env python3
+"""Report on a recorded run: metrics JSON, a Markdown summary and PNG figures.
+
+    report.py BAG [--out DIR] [--scenario NAME] [--no-figures]
+
+Steady-drift windows come from the scenario's ``metrics`` section when ``--scenario`` is given,
+else from the recorded reference (where its sideslip holds its plateau). Output goes to
+``BAG/report/`` by default: metrics.json, report.md, states.png, inputs.png, path.png,
+solve_time.png. A bag whose recorder was killed is repaired first (``drift_tools.bag.reindex``).
+"""
+import argparse
+import sys
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('bag', help='rosbag2 directory (metadata.yaml + .mcap)')
+    parser.add_argument('--out', help='output directory (default BAG/report)')
+    parser.add_argument('--scenario', help='take the steady-drift windows from this scenario')
+    parser.add_argument('--no-figures', action='store_true')
+    args = parser.parse_args(argv)
+
+    from drift_tools.bag import read_bag, reindex
+    from drift_tools.report import write_report
+    from drift_tools.timeseries import series_from_bag
+
+    bag = Path(args.bag)
+    if not (bag / 'metadata.yaml').exists():
+        print(f'report: {bag}: not a bag directory (no metadata.yaml)', file=sys.stderr)
+        return 2
+    windows = transient_end = None
+    if args.scenario:
+        from drift_sim.scenario import load_scenario
+        scenario = load_scenario(args.scenario).scenario
+        windows = [list(w) for w in scenario.metrics.steady]
+        transient_end = scenario.metrics.transient_end
+    try:
+        reindex(bag)
+        run = series_from_bag(read_bag(bag))
+        m = write_report(run, args.out or bag / 'report', bag.name, windows, transient_end,
+                         with_figures=not args.no_figures)
+    except (ValueError, OSError) as err:
+        print(f'report: {err}', file=sys.stderr)
+        return 2
+    print((Path(args.out or bag / 'report') / 'report.md').read_text())
+    return 0 if m else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
