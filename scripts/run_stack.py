@@ -27,9 +27,11 @@ def parse_args(argv=None):
     p.add_argument('--duration', type=float, default=0.0,
                    help='stop after this many wall-clock seconds (0: run until Ctrl-C)')
     p.add_argument('--bag', type=Path, help='record to this rosbag2 (MCAP) directory')
-    p.add_argument('--scenario', default='', help='scenario name passed to every node')
-    p.add_argument('--clock', choices=CLOCK_MODES, default='realtime',
-                   help='lockstep: nodes use /clock, published by the clock owner (the sim)')
+    p.add_argument('--scenario', default=None,
+                   help='scenario passed to every node (default: stack.yaml defaults.scenario)')
+    p.add_argument('--clock', choices=CLOCK_MODES, default=None,
+                   help='lockstep: nodes use /clock, published by the clock owner (the sim); '
+                        'default: stack.yaml defaults.clock, else realtime')
     p.add_argument('--config-dir', type=Path, default=None,
                    help='config directory (default: the checkout\'s config/)')
     p.add_argument('--stack', type=Path, default=None, help='stack file (default: CONFIG_DIR/stack.yaml)')
@@ -64,7 +66,10 @@ def main(argv=None) -> int:
             nodes = [n for n in nodes if n.module != RECORDER_MODULE]
         params_dir = args.bag or Path(tempfile.mkdtemp(prefix='drift_stack_'))
         opts = RunOptions(params_file=write_params_file(stack, params_dir / 'stack_params.yaml'),
-                          config_dir=cfg_dir, scenario=args.scenario, clock=args.clock,
+                          config_dir=cfg_dir,
+                          scenario=stack.defaults.get('scenario', '') if args.scenario is None
+                          else args.scenario,
+                          clock=args.clock or stack.defaults.get('clock', 'realtime'),
                           bag_dir=args.bag, domain_id=args.domain_id,
                           discovery_range=args.discovery_range)
     except ParamError as err:

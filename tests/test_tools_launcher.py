@@ -108,6 +108,8 @@ def test_project_stack_graphs():
     ('nodes: {}', 'graphs'),
     ('graphs: {sim: {sim: 3}}', 'stack.graphs.sim.sim'),
     ('graphs: {sim: {sim: m}}\nsim: {rate: 1}', 'stack.sim'),
+    ('graphs: {sim: {sim: m}}\ndefaults: {clock: fast}', 'stack.defaults.clock'),
+    ('graphs: {sim: {sim: m}}\ndefaults: {duration: 3}', 'stack.defaults'),
 ])
 def test_stack_errors_name_the_key(tmp_path, text, key):
     (tmp_path / 'stack.yaml').write_text(text)
@@ -139,6 +141,14 @@ def test_node_command_and_clock_ownership(tmp_path, clock):
     assert p_rec['use_sim_time'] == ('true' if clock == 'lockstep' else 'false')
     assert yaml.safe_load(p_rec['scenario']) == "it's"
     assert yaml.safe_load(p_rec['bag_dir']) == str(tmp_path / 'bag') and 'bag_dir' not in p_sim
+
+
+def test_an_empty_scenario_is_not_passed(tmp_path):
+    opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path)
+    assert 'scenario' not in _params(node_command(NodeSpec('nmpc', 'm'), opts))
+    cfg = load_stack(REPO / 'config' / 'stack.yaml')
+    assert cfg.defaults['clock'] in ('realtime', 'lockstep')
+    assert (REPO / 'config' / 'scenarios' / f"{cfg.defaults['scenario']}.yaml").is_file()
 
 
 def test_child_env_always_sets_domain_and_discovery(tmp_path):

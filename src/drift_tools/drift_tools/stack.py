@@ -36,6 +36,7 @@ class StackConfig:
     graphs: dict            # graph name -> tuple of NodeSpec, in start order
     node_params: dict       # node name -> {'ros__parameters': {...}} (ROS parameter-file layout)
     clock_owner: str = 'sim'   # node that publishes /clock in lockstep mode
+    defaults: dict = field(default_factory=dict)   # run_stack defaults: scenario, clock
 
     def graph(self, name: str, only: list[str] | None = None) -> list[NodeSpec]:
         """The nodes of graph ``name``, optionally restricted to the names in ``only``."""
@@ -70,15 +71,25 @@ def load_stack(path: str | os.PathLike) -> StackConfig:
     clock_owner = raw.get('clock_owner', 'sim')
     if not isinstance(clock_owner, str):
         raise ParamError(f'stack.clock_owner: expected a node name, got {clock_owner!r}')
+    defaults = raw.get('defaults') or {}
+    if not isinstance(defaults, dict):
+        raise ParamError(f'stack.defaults: expected a mapping, got {defaults!r}')
+    unknown = sorted(set(defaults) - {'scenario', 'clock'})
+    if unknown:
+        raise ParamError(f'stack.defaults: unknown key(s) {unknown}')
+    if defaults.get('clock', 'realtime') not in CLOCK_MODES:
+        raise ParamError(f'stack.defaults.clock: must be one of {list(CLOCK_MODES)}')
+    if not isinstance(defaults.get('scenario', ''), str):
+        raise ParamError('stack.defaults.scenario: expected a scenario name')
     node_params = {}
     for key, section in raw.items():
-        if key in ('graphs', 'clock_owner'):
+        if key in ('graphs', 'clock_owner', 'defaults'):
             continue
         if not isinstance(section, dict) or set(section) != {'ros__parameters'} \
                 or not isinstance(section['ros__parameters'], dict):
             raise ParamError(f'stack.{key}: expected exactly "ros__parameters:" with a mapping')
         node_params[str(key)] = section
-    return StackConfig(graphs, node_params, clock_owner)
+    return StackConfig(graphs, node_params, clock_owner, dict(defaults))
 
 
 def write_params_file(cfg: StackConfig, path: str | os.PathLike) -> Path:
@@ -96,7 +107,7 @@ class RunOptions:
 
     params_file: Path
     config_dir: Path
-    scenario: str = ''
+    scenario: str = ''                     # '' = not passed; nodes keep their default
     clock: str = 'realtime'                # 'realtime' or 'lockstep'
     bag_dir: Path | None = None            # recorder output; None = no recorder parameter
     domain_id: int = 0
@@ -133,8 +144,9 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim') -> 
     params = {
         'use_sim_time': opts.clock == 'lockstep' and not owns_clock,
         'config_dir': str(opts.config_dir),
-        'scenario': opts.scenario,
     }
+    if opts.scenario:                # else each node keeps its own default
+        params['scenario'] = opts.scenario
     if owns_clock:
         params['clock_mode'] = opts.clock
     if spec.module == RECORDER_MODULE and opts.bag_dir is not None:

@@ -54,6 +54,10 @@ def run_metrics(messages: dict[str, list[BagMessage]]) -> dict[str, float]:
         ``read_bag`` output: absolute topic name -> messages.
     """
     out = {}
+    clock = messages.get('/clock', [])
+    if len(clock) >= 2:     # lockstep runs: simulated time covered, vs the wall time of the bag
+        first, last = clock[0].msg.clock, clock[-1].msg.clock
+        out['sim_time_span_s'] = (last.sec - first.sec) + 1e-9 * (last.nanosec - first.nanosec)
     states = [m.msg for m in messages.get('/vehicle/state', [])]
     if states:
         v = np.array([s.v for s in states])
