@@ -4,7 +4,7 @@ PY       := .venv/bin/python
 GRAPH    ?= sim
 DURATION ?= 20
 SCENARIO ?=
-BAG      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)/bag
+RUN      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
 
 .PHONY: setup run test
 
@@ -12,8 +12,8 @@ setup:
 	@scripts/setup.sh
 
 run: setup
-	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) --bag $(BAG) \
-		$(if $(SCENARIO),--scenario $(SCENARIO)) $(ARGS)
+	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) \
+		--bag $(RUN)/bag --log-dir $(RUN)/logs $(if $(SCENARIO),--scenario $(SCENARIO)) $(ARGS)
 
 test:
 	@.ci/run $(ARGS)

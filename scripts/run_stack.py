@@ -40,6 +40,7 @@ def parse_args(argv=None):
                    default=os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'))
     p.add_argument('--kill-timeout', type=float, default=8.0,
                    help='seconds a node gets after SIGINT before SIGKILL')
+    p.add_argument('--log-dir', type=Path, help='also write each node\'s output to DIR/<node>.log')
     p.add_argument('--no-summary', action='store_true', help='do not summarise the bag at the end')
     return p.parse_args(argv)
 
@@ -86,10 +87,13 @@ def main(argv=None) -> int:
     launcher = Launcher(kill_timeout=args.kill_timeout)
     launcher.install_signal_handlers()
     env = node_env(opts)
+    if args.log_dir:
+        args.log_dir.mkdir(parents=True, exist_ok=True)
     # The recorder first, so it is subscribed before the others publish; and stopped last.
     for spec in sorted(nodes, key=lambda n: n.module != RECORDER_MODULE):
         launcher.start(spec.name, node_command(spec, opts, stack.clock_owner), env,
-                       stop_last=spec.module == RECORDER_MODULE)
+                       stop_last=spec.module == RECORDER_MODULE,
+                       log_path=args.log_dir / f'{spec.name}.log' if args.log_dir else None)
     outcome = launcher.wait(args.duration or None)
     codes = ', '.join(f'{name}={rc}' for name, rc in outcome.returncodes.items())
     print(f'[launch] stopped ({outcome.reason}); exit codes: {codes}'

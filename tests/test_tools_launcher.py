@@ -89,6 +89,48 @@ def test_a_node_ignoring_sigint_is_killed_and_fails_the_run():
     assert any('SIGKILL' in line for line in lines)
 
 
+def test_node_output_is_logged_to_a_file(tmp_path):
+    launcher = Launcher(out=io.StringIO(), colour=False)
+    launcher.start('n', child('finish', 0.1), env=None, log_path=tmp_path / 'n.log')
+    launcher.wait(10.0)
+    assert (tmp_path / 'n.log').read_text().splitlines() == ['up', 'leaving']
+
+
+ORPHAN = r'''
+import sys, time
+from drift_tools.launcher import Launcher
+launcher = Launcher(colour=False)
+proc = launcher.start('n', sys.argv[1:], env=None)
+time.sleep(1.0)       # the child has printed 'up' and goes quiet: no broken pipe to end it
+print('child', proc.popen.pid, flush=True)
+time.sleep(60)
+'''
+
+
+def test_nodes_do_not_outlive_a_killed_launcher():
+    import os
+    import subprocess
+    parent = subprocess.Popen([sys.executable, '-c', ORPHAN, *child('run')],
+                              stdout=subprocess.PIPE, text=True)
+    line = parent.stdout.readline()
+    while not line.startswith('child'):
+        line = parent.stdout.readline()
+    pid = int(line.split()[1])
+    parent.kill()
+    parent.wait(10)
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        try:
+            with open(f'/proc/{pid}/stat') as fh:
+                if fh.read().rsplit(')', 1)[1].split()[0] == 'Z':   # dead, not yet reaped
+                    return
+        except FileNotFoundError:
+            return
+        time.sleep(0.05)
+    os.kill(pid, 9)
+    raise AssertionError('the node outlived its killed launcher')
+
+
 # --- stack.yaml -------------------------------------------------------------------------------
 
 def test_project_stack_graphs():

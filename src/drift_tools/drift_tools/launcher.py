@@ -6,6 +6,7 @@ to SIGKILL after a timeout.
 """
 from __future__ import annotations
 
+import ctypes
 import logging
 import signal
 import subprocess
@@ -17,6 +18,7 @@ from dataclasses import dataclass, field
 logger = logging.getLogger(__name__)
 
 COLOURS = (36, 33, 35, 32, 34, 91, 96, 93)   # ANSI foreground codes, one per node
+_PR_SET_PDEATHSIG = 1
 CLEAN_EXIT_CODES = (0, -signal.SIGINT, 130)  # what a node may return after our SIGINT
 
 
@@ -28,6 +30,7 @@ class Proc:
     argv: list
     popen: subprocess.Popen
     stop_last: bool = False              # stopped after the others (recorders)
+    log_path: str | None = None          # the node's output also goes here, unprefixed
     reader: threading.Thread | None = None
     expected_exit: bool = False
 
@@ -92,17 +95,32 @@ class Launcher:
             self._out.flush()
 
     def _pump(self, proc: Proc, index: int) -> None:
-        for raw in iter(proc.popen.stdout.readline, b''):
-            width = max(len(p.name) for p in self.procs)    # all names known by the first line
-            self.emit(self._prefix(proc.name, index, width), raw.decode('utf-8', 'replace'))
-        proc.popen.stdout.close()
+        log = open(proc.log_path, 'w', encoding='utf-8') if proc.log_path else None
+        try:
+            for raw in iter(proc.popen.stdout.readline, b''):
+                line = raw.decode('utf-8', 'replace')
+                width = max(len(p.name) for p in self.procs)   # all names known by now
+                self.emit(self._prefix(proc.name, index, width), line)
+                if log:
+                    log.write(line)
+                    log.flush()
+        finally:
+            proc.popen.stdout.close()
+            if log:
+                log.close()
 
     # --- lifecycle ------------------------------------------------------------------------
-    def start(self, name: str, argv: list, env: dict, stop_last: bool = False) -> Proc:
-        """Start one node; its stdout and stderr are merged, prefixed and streamed."""
+    def start(self, name: str, argv: list, env: dict, stop_last: bool = False,
+              log_path: str | None = None) -> Proc:
+        """Start one node; its stdout and stderr are merged, prefixed and streamed.
+
+        The node gets SIGTERM if the launcher dies without stopping it (killed), so no orphan
+        keeps publishing into the next run.
+        """
         popen = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL, start_new_session=True)
-        proc = Proc(name, list(argv), popen, stop_last)
+                                 stdin=subprocess.DEVNULL, start_new_session=True,
+                                 preexec_fn=_term_with_parent)
+        proc = Proc(name, list(argv), popen, stop_last, log_path)
         self.procs.append(proc)
         proc.reader = threading.Thread(target=self._pump, args=(proc, len(self.procs) - 1),
                                        daemon=True)
@@ -171,3 +189,11 @@ class Launcher:
     def _say(self, text: str) -> None:
         prefix = '\033[1m[launch]\033[0m ' if self._colour else '[launch] '
         self.emit(prefix, text)
+
+
+def _term_with_parent() -> None:
+    """In the child before exec: ask Linux for SIGTERM when the launcher dies."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):      # not Linux: the launcher's own handlers must do
+        pass
