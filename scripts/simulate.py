@@ -4,9 +4,9 @@
     .venv/bin/python scripts/simulate.py --scenario steady_dry --json out.json
     .venv/bin/python scripts/simulate.py --scenario steady_wet --set surface.mu=0.55 --seed 3
 
-The controller runs at its own period (the NMPC's stage length, 20 ms) on the latest measured
-state; the plant is stepped every 10 ms. ``--controller feedforward`` applies the selected
-equilibrium's (delta, T_R) open loop: a baseline to judge the NMPC against, not a substitute.
+The loop itself is ``drift_sim.closed_loop.run_closed_loop``; this prints its metrics as JSON.
+``--controller feedforward`` applies the selected equilibrium's (delta, T_R) open loop: a
+baseline to judge the NMPC against, not a substitute.
 """
 from __future__ import annotations
 
@@ -15,174 +15,12 @@ import json
 import logging
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-from drift_control.params import ParamError, config_dir, load_surface, load_vehicle
-from drift_control.reference import ReferenceSelector, load_reference_params
-from drift_control.signals import Command, Mode
-from drift_sim import metrics
-from drift_sim.scenario import load_scenario
-from drift_sim.simulator import Simulator
-
-
-class Feedforward:
-    """The reference equilibrium's steering angle and torque, applied open loop."""
-
-    period = 0.02
-
-    def step(self, state, ref, now):
-        if ref is None:
-            return None, math.nan
-        eq = ref.target
-        return Command(now, eq.delta, 0.0, eq.T_R, Mode.FULL), 0.0
-
-
-class NmpcController:
-    """drift_control.nmpc.Nmpc behind the same small interface.
-
-    The NMPC is told the named surface's nominal mu (config/vehicle/surfaces.yaml), not the
-    scenario's actual one: a ``--set surface.mu=...`` is a friction the controller does not know.
-    """
-
-    def __init__(self, cfg: Path, torque_only: bool, surface: str):
-        from drift_control.nmpc import Nmpc   # imported when used: ROS-free, but heavy
-        from drift_control.ocp import load_nmpc_params
-        params = load_nmpc_params(cfg / 'nmpc.yaml')
-        mode = Mode.TORQUE_ONLY if torque_only else Mode.FULL
-        mu = load_surface(surface, cfg / 'vehicle' / 'surfaces.yaml').mu
-        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params, mode, mu)
-        self.period = params.Ts
-
-    def step(self, state, ref, now):
-        result = self.nmpc.step(state, ref, now)
-        return result.command, result.solve_time_s
-
-
-class SingleTrackSim:
-    """The controller's own single-track model (drift_control.model_plant) as the plant.
-
-    A diagnosis aid (``--plant single_track``): no model mismatch, no actuator dynamics, no
-    friction field, no noise. If a scenario fails here too, the cause is not the simulator.
-    """
-
-    def __init__(self, loaded, cfg: Path):
-        from drift_control.frenet import Frenet
-        from drift_control.model_plant import ModelPlant
-        from drift_control.vehicle import NX, X
-        from drift_sim.scenario import initial_pose
-        self.loaded, self.scenario = loaded, loaded.scenario
-        vehicle = load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml')
-        self.plant = ModelPlant(vehicle, mu=self.scenario.mu, seed=self.scenario.seed)
-        self.plant.seed, self.plant.model = self.scenario.seed, None
-        self.dt, self.commands_lost = 0.01, 0
-        start = initial_pose(self.scenario, loaded.path, vehicle.L)
-        x0 = np.zeros(NX)
-        x0[[X.V, X.BETA, X.R, X.DELTA]] = start['V'], start['beta'], start['r'], start['delta']
-        x0[X.OMEGA_F] = start['V'] * math.cos(start['beta']) / vehicle.R_F
-        x0[X.OMEGA_R] = start['V'] * math.cos(start['beta']) / vehicle.R_R
-        self._x0, self._pose = x0, (start['x'], start['y'], start['yaw'])
-        self._frenet = Frenet(loaded.path)
-        self._frenet.reset(self.scenario.initial.s)
-        self._last = Command(0.0, start['delta'], 0.0, 0.0, Mode.FULL)
-
-    @property
-    def t(self):
-        return self.plant.t
-
-    def reset(self):
-        self.state = self.plant.reset(self._x0, self._pose)
-        return self.state
-
-    def step(self, command):
-        if command is None:
-            self.commands_lost += 1
-        self._last = command or self._last
-        self.state = self.plant.step(self._last, self.dt)
-        return self.state
-
-    def sample(self):
-        from drift_sim.simulator import TruthSample
-        st = self.state
-        fp = self._frenet.project(st.x, st.y, st.yaw, st.beta)
-        K = float(fp.K)
-        beta_des = -math.copysign(float(self.loaded.path.beta_at(fp.s)), K) if K else 0.0
-        return TruthSample(st.stamp, st, self.plant.mu, float(fp.s), float(fp.e_y), beta_des,
-                           st.drive_torque, self._last.delta)
-
-
-def run(args) -> dict:
-    cfg = Path(args.config_dir)
-    loaded = load_scenario(args.scenario, args.set, cfg, seed=args.seed)
-    sc = loaded.scenario
-    from drift_control.eqmap import load_map
-    if not sc.map_file:
-        raise ParamError(f'scenario {sc.name}: no map_file')
-    lookup = load_map(str(cfg.parent / sc.map_file)).lookup
-    selector = ReferenceSelector(lookup, loaded.path,
-                                 load_reference_params(cfg / 'reference.yaml'))
-    controller = (Feedforward() if args.controller == 'feedforward' else
-                  NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name))
-    sim = Simulator(loaded) if args.plant == 'double_track' else SingleTrackSim(loaded, cfg)
-    every = max(1, int(round(controller.period / sim.dt)))
-    n_steps = int(round(sc.duration / sim.dt))
-
-    state = sim.reset()
-    command, ref = None, None
-    log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu',
-                           'beta_ref',
-                           'beta_des', 'delta_cmd', 'T_cmd')}
-    solve_times = []
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-        bar = tqdm(total=n_steps, unit='step', file=sys.stderr, desc=sc.name)
-    wall0 = time.perf_counter()
-    for k in range(n_steps):
-        if k % every == 0:
-            ref = selector.select(state)
-            new, solve = controller.step(state, ref, sim.t)
-            if new is not None:
-                command = new
-                solve_times.append(solve)
-        state = sim.step(command)
-        tr = sim.sample()
-        st = tr.state
-        for key, value in (('t', tr.t), ('x', st.x), ('y', st.y), ('V', st.V),
-                           ('beta', st.beta), ('r', st.r),
-                           ('delta', st.delta), ('T', st.drive_torque), ('e_y', tr.e_y),
-                           ('s', tr.s),
-                           ('mu', tr.mu), ('beta_des', tr.beta_des),
-                           ('beta_ref', ref.target.beta if ref is not None else math.nan),
-                           ('delta_cmd', command.delta if command else math.nan),
-                           ('T_cmd', command.drive_torque if command else math.nan)):
-            log[key].append(value)
-        if bar is not None:
-            bar.update(1)
-            if k % 100 == 0:
-                bar.set_postfix(beta=f'{math.degrees(st.beta):+.1f}deg', V=f'{st.V:.1f}')
-        if args.stop_on_spin and abs(st.beta) > metrics.SPIN_BETA:
-            break
-    wall = time.perf_counter() - wall0
-    if bar is not None:
-        bar.close()
-    data = {k: np.asarray(v, dtype=float) for k, v in log.items()}
-    # steady-state tracking is judged against the path's desired sideslip where no reference
-    beta_ref = np.where(np.isfinite(data['beta_ref']), data['beta_ref'], data['beta_des'])
-    out = metrics.summary(data['t'], data['beta'], beta_ref, data['e_y'], sc.metrics.steady,
-                          sc.metrics.transient_end, math.radians(sc.metrics.drift_beta_deg),
-                          solve_times, wall)
-    out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
-                                               loaded.path.length)
-    out.update(scenario=sc.name, seed=sim.plant.seed, controller=args.controller,
-               overrides=list(args.set), expect_spin=sc.expect_spin,
-               commands_lost=sim.commands_lost, plant=args.plant,
-               plant_jit=bool(sim.plant.model and sim.plant.model.jit))
-    if args.trace:
-        np.savez_compressed(args.trace, **data)
-    return out
+from drift_control.params import ParamError, config_dir
+from drift_sim.closed_loop import run_closed_loop
 
 
 def main(argv=None) -> int:
@@ -203,10 +41,14 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     try:
-        out = run(args)
+        out, trace = run_closed_loop(args.scenario, args.set, args.seed, args.controller,
+                                     args.plant, args.config_dir, progress=not args.quiet,
+                                     stop_on_spin=args.stop_on_spin)
     except ParamError as err:
         print(f'simulate: {err}', file=sys.stderr)
         return 2
+    if args.trace:
+        np.savez_compressed(args.trace, **trace)
     out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
            for k, v in out.items()}
     text = json.dumps(out, indent=2, sort_keys=True)

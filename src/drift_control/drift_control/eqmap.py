@@ -248,7 +248,9 @@ def build_map(vehicle: VehicleParams, surface: Surface, params: MapParams = MapP
             if on_row:
                 on_row(j)
     else:
-        with multiprocessing.get_context('fork').Pool(jobs, _init_worker, (vehicle,)) as pool:
+        # spawn, not fork: a forked worker inherits the parent's threads and signal handlers
+        # (rclpy's SIGTERM handler after an in-process node), and Pool.terminate() then hangs
+        with multiprocessing.get_context('spawn').Pool(jobs, _init_worker, (vehicle,)) as pool:
             for j, sols in pool.imap_unordered(_solve_radius, tasks):
                 rows[j] = sols
                 if on_row:
