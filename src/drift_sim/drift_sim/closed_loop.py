@@ -135,10 +135,10 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     lookup = load_map(str(cfg.parent / sc.map_file)).lookup
     selector = ReferenceSelector(lookup, loaded.path,
                                  load_reference_params(cfg / 'reference.yaml'))
-    controller = (Feedforward() if controller == 'feedforward' else
+    ctrl = (Feedforward() if controller == 'feedforward' else
                   NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name))
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, cfg)
-    every = max(1, int(round(controller.period / sim.dt)))
+    every = max(1, int(round(ctrl.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
 
     state = sim.reset()
@@ -155,7 +155,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     for k in range(n_steps):
         if k % every == 0:
             ref = selector.select(state)
-            new, solve = controller.step(state, ref, sim.t)
+            new, solve = ctrl.step(state, ref, sim.t)
             if new is not None:
                 command = new
                 solve_times.append(solve)
