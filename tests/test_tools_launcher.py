@@ -89,6 +89,25 @@ def test_a_node_ignoring_sigint_is_killed_and_fails_the_run():
     assert any('SIGKILL' in line for line in lines)
 
 
+def test_second_interrupt_kills_without_waiting():
+    import os
+    import signal
+    launcher = Launcher(out=io.StringIO(), colour=False, kill_timeout=30.0)
+    saved = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)]
+    try:
+        launcher.install_signal_handlers()
+        launcher.start('stubborn', child('ignore'), env=None)
+        for delay in (0.5, 1.0):
+            threading.Timer(delay, os.kill, (os.getpid(), signal.SIGINT)).start()
+        t0 = time.monotonic()
+        outcome = launcher.wait()
+    finally:
+        signal.signal(signal.SIGINT, saved[0])
+        signal.signal(signal.SIGTERM, saved[1])
+    assert outcome.reason == 'signal' and outcome.killed == ['stubborn']
+    assert time.monotonic() - t0 < 5.0, 'the second Ctrl-C must not wait for kill_timeout'
+
+
 def test_node_output_is_logged_to_a_file(tmp_path):
     launcher = Launcher(out=io.StringIO(), colour=False)
     launcher.start('n', child('finish', 0.1), env=None, log_path=tmp_path / 'n.log')

@@ -79,6 +79,7 @@ class Launcher:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._stop_reason = 'signal'
+        self._kill_now = False           # a second Ctrl-C: do not wait for clean exits
         self.procs: list[Proc] = []
 
     # --- output ---------------------------------------------------------------------------
@@ -134,9 +135,13 @@ class Launcher:
         self._stop.set()
 
     def install_signal_handlers(self) -> None:
-        """SIGINT and SIGTERM to the launcher stop the stack cleanly."""
+        """SIGINT and SIGTERM stop the stack cleanly; a second one kills what is left."""
+        def handler(signum, frame):
+            if self._stop.is_set():
+                self._kill_now = True
+            self.request_stop('signal')
         for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda signum, frame: self.request_stop('signal'))
+            signal.signal(sig, handler)
 
     def wait(self, duration: float | None = None, poll: float = 0.05) -> Outcome:
         """Block until ``duration`` passes, a stop is requested or a node exits; then stop all.
@@ -173,10 +178,13 @@ class Launcher:
                     p.popen.send_signal(signal.SIGINT)
             deadline = time.monotonic() + self._kill_timeout
             for p in group:
-                try:
-                    p.popen.wait(max(0.0, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    self._say(f'{p.name} did not exit {self._kill_timeout:.0f} s after SIGINT: SIGKILL')
+                while p.popen.poll() is None and not self._kill_now \
+                        and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                if p.popen.poll() is None:
+                    why = 'second interrupt' if self._kill_now else \
+                        f'no exit {self._kill_timeout:g} s after SIGINT'
+                    self._say(f'{p.name}: {why}: SIGKILL')
                     p.popen.kill()
                     p.popen.wait()
                     outcome.killed.append(p.name)
