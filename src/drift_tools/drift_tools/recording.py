@@ -3,11 +3,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-# Relative names, as the nodes publish them (a namespace or remap moves them all together).
-STACK_TOPICS = (
-    'vehicle/state', 'drift/reference', 'drift/command', 'drift/nmpc/status', 'drift/path',
-    'diagnostics', '/clock',
-)
+# The stack's topics (relative names, as the nodes publish them: a namespace or remap moves them
+# all together) -> (type, latched). Known in advance, so the recorder subscribes to them before
+# their publishers exist and misses none of the first messages; latched = transient-local.
+STACK_TOPICS = {
+    'vehicle/state': ('drift_msgs/msg/VehicleState', False),
+    'drift/reference': ('drift_msgs/msg/DriftReference', False),
+    'drift/command': ('drift_msgs/msg/DriftCommand', False),
+    'drift/nmpc/status': ('drift_msgs/msg/NmpcStatus', False),
+    'drift/path': ('nav_msgs/msg/Path', True),
+    'diagnostics': ('diagnostic_msgs/msg/DiagnosticArray', False),
+    '/clock': ('rosgraph_msgs/msg/Clock', False),
+    'sim/state': ('drift_msgs/msg/VehicleState', False),
+}
 STACK_NAMESPACES = ('vehicle', 'drift', 'sim')
 NEVER = ('/rosout', '/parameter_events')
 

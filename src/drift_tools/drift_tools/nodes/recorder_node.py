@@ -18,8 +18,20 @@ def message_class(msgtype: str):
     return getattr(importlib.import_module(f'{pkg}.msg'), name)
 
 
+def make_qos(reliable: bool, latched: bool) -> QoSProfile:
+    """Deep keep-last queue; reliability and durability as given."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=100,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
 class RecorderNode(Node):
-    """Subscribes (raw) to the stack's topics as their publishers appear and writes them."""
+    """Subscribes raw to the stack's topics (and new ones under its namespaces) and writes them.
+
+    The stack's own topics are subscribed at once with the types and QoS the stack uses; polling
+    the graph adds new topics and re-subscribes where publishers offer a weaker QoS (as rosbag2).
+    """
 
     def __init__(self):
         super().__init__('recorder')
@@ -38,40 +50,52 @@ class RecorderNode(Node):
             topics=tuple(resolve(t) for t in (*STACK_TOPICS, *extra) if t),
             namespaces=tuple(resolve(ns) for ns in namespaces if ns))
         self._writer = BagWriter(bag_dir, chunk_size=chunk_size)
-        self._subs = {}
+        self._subs = {}        # topic -> (subscription, type, QoS), or None: cannot record
+        for topic, (msgtype, latched) in STACK_TOPICS.items():
+            self._subscribe(resolve(topic), msgtype, make_qos(True, latched))
         self.create_timer(period, self._discover)
         self.create_timer(flush_period, self._writer.flush)
-        self._discover()
         self.get_logger().info(f'recording to {bag_dir}')
+
+    def _subscribe(self, topic, msgtype, qos):
+        try:
+            cls = message_class(msgtype)
+        except (ImportError, AttributeError, ValueError) as err:
+            self.get_logger().warning(f'not recording {topic} ({msgtype}): {err}')
+            self._subs[topic] = None
+            return
+        sub = self.create_subscription(
+            cls, topic, lambda data, t=topic, m=msgtype: self._on_message(t, m, data), qos,
+            raw=True)
+        self._subs[topic] = (sub, msgtype, qos)
+
+    def _on_message(self, topic, msgtype, data):
+        if topic not in self._writer.topics:       # the bag lists only topics that had data
+            self._writer.add_topic(topic, msgtype)
+            self.get_logger().info(f'recording {topic} [{msgtype}]')
+        self._writer.write(topic, data, time.time_ns())
 
     def _discover(self):
         for topic, msgtype in self._selector.select(self.get_topic_names_and_types()):
-            if topic in self._subs:
-                continue
             pubs = self.get_publishers_info_by_topic(topic)
-            if not pubs:
+            if not pubs or self._subs.get(topic, ()) is None:
                 continue
-            try:
-                cls = message_class(msgtype)
-                self._writer.add_topic(topic, msgtype, type_hash=str(pubs[0].topic_type_hash))
-            except (ImportError, AttributeError, LookupError, ValueError) as err:
-                self.get_logger().warning(f'not recording {topic} ({msgtype}): {err}')
-                self._subs[topic] = None
-                continue
-            self._subs[topic] = self.create_subscription(
-                cls, topic, lambda data, t=topic: self._writer.write(t, data, time.time_ns()),
-                self._qos_for(pubs), raw=True)
-            self.get_logger().info(f'recording {topic} [{msgtype}]')
-
-    @staticmethod
-    def _qos_for(pubs) -> QoSProfile:
-        """Match the publishers, as rosbag2 does: reliable/transient only if all offer it."""
-        reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in pubs)
-        latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs)
-        return QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=100,
-            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+            qos = make_qos(
+                all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in pubs),
+                all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs))
+            current = self._subs.get(topic)
+            if current is not None:
+                sub, old_type, old_qos = current
+                if (old_type, old_qos.reliability, old_qos.durability) == \
+                        (msgtype, qos.reliability, qos.durability):
+                    continue
+                if old_type != msgtype and topic in self._writer.topics:
+                    self.get_logger().warning(f'{topic} changed type to {msgtype}: ignored')
+                    continue
+                self.destroy_subscription(sub)
+            self._subscribe(topic, msgtype, qos)
+            self.get_logger().info(f'subscribed to {topic} [{msgtype}], {qos.reliability.name} '
+                                   f'{qos.durability.name}')
 
     def close(self):
         """Write the bag's summary and final metadata."""
