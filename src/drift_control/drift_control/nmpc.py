@@ -3,8 +3,10 @@
 ``Nmpc.step(state, ref, now)`` turns the latest vehicle state and equilibrium reference into an
 actuator command. The OCP and its solvers live in ``ocp.py`` and ``ocp_solvers.py``; this module
 owns what happens around a solve: input checks (missing, stale, non-finite, invalid), warm start
-by shifting the previous solution, the shifted plan after a failed solve, and the safe fallback
-(torque ramped down, steering rate-limited toward the reference) after repeated failures.
+by shifting the previous solution, the wheel-torque estimate through the powertrain lag, the
+model-error estimate for offset-free tracking (``disturbance_gain``; 0 gives the paper's NMPC),
+the shifted plan after a failed solve, and the safe fallback (torque ramped down, steering
+rate-limited toward the reference) after repeated failures.
 """
 from __future__ import annotations
 
