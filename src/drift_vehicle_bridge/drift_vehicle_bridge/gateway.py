@@ -28,7 +28,9 @@ class Gateway:
     Every cycle writes DS_CMD_STATUS (heartbeat, mode, drop reason): in OFF and ARMED that is the
     explicit "no request". DS_CMD_TORQUE is written only in ACTIVE_*, DS_CMD_STEER only in
     ACTIVE_FULL, both after the limiter. Only messages in ``params.tx_allow`` are ever written.
-    With ``bus=None`` (log replay) nothing is written and arming is refused.
+    With ``bus=None`` (log replay) nothing is written and arming is refused. With
+    ``params.auto_arm`` (simulated buses only) the gateway requests arming itself each cycle
+    while OFF until it has once been ACTIVE; after that a drop to OFF is latched as usual.
 
     Parameters
     ----------
@@ -52,6 +54,7 @@ class Gateway:
         self._counters = Counter()
         self._command: Command | None = None
         self._command_time: float | None = None
+        self.been_active = False
 
     @classmethod
     def open(cls, params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> 'Gateway':
@@ -88,10 +91,13 @@ class Gateway:
         """One cycle at ``now`` [s]: drain the bus, update state and mode, write the frames."""
         self._drain(now)
         self.state = self.monitor.state(now)
+        if self.params.auto_arm and self.mode == BridgeMode.OFF and not self.been_active:
+            self.request_arm(now)    # retried while refused: arms once the state allows it
         was_active = self.mode.active
         mode = self.modes.update(now, self.state, self._command, self._command_time)
         if mode.active and not was_active:
             self.limiter.reset(self.state.delta, self.state.drive_torque)
+            self.been_active = True
         self._transmit(mode)
         return self.state
 

@@ -8,6 +8,10 @@ from pathlib import Path
 from drift_control.params import ParamError, config_dir, from_dict, load_yaml, require
 
 
+# python-can interfaces that cannot reach a vehicle: the only ones auto_arm is allowed on.
+SIMULATED_INTERFACES = ('virtual', 'udp_multicast')
+
+
 @dataclass(frozen=True)
 class BusParams:
     """What ``can.Bus(**kwargs)`` gets: any python-can interface (socketcan, pcan, virtual...)."""
@@ -110,10 +114,15 @@ class BridgeParams:
     mode: ModeParams
     limits: LimitParams
     tx_allow: tuple[str, ...]           # the only message names ever written
+    auto_arm: bool = False              # simulation only: arm without an operator request
 
     def __post_init__(self):
         require(0 < self.cycle_time <= 0.1, 'bridge.cycle_time', 'must be in (0, 0.1] s')
         require(len(self.tx_allow) > 0, 'bridge.tx_allow', 'must name at least one message')
+        # On a car, arming is the safety driver's decision; never a configuration default.
+        require(not self.auto_arm or self.bus.interface in SIMULATED_INTERFACES,
+                'bridge.auto_arm', f'only on a simulated bus {SIMULATED_INTERFACES}, '
+                f'not on {self.bus.interface!r}')
 
 
 def load_bridge_params(cfg_dir: str | os.PathLike | None = None,
@@ -140,4 +149,5 @@ def dbc_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> 
 
 
 __all__ = ['BridgeParams', 'BusParams', 'Envelope', 'LimitParams', 'ModeParams',
-           'MonitorParams', 'ParamError', 'dbc_path', 'load_bridge_params']
+           'MonitorParams', 'ParamError', 'SIMULATED_INTERFACES', 'dbc_path',
+           'load_bridge_params']

@@ -30,7 +30,8 @@ class BridgeNode(Node):
                'bitrate': self.declare_parameter('bitrate', 0).value}
         bus = {k: v for k, v in bus.items() if v}    # '' / 0: keep config/bridge.yaml's
         log_file = self.declare_parameter('log_file', '').value
-        params = load_bridge_params(cfg, {'bus': bus})
+        auto_arm = self.declare_parameter('auto_arm', False).value   # virtual/udp_multicast only
+        params = load_bridge_params(cfg, {'bus': bus, **({'auto_arm': True} if auto_arm else {})})
         codec = Codec.load(dbc_path(params, cfg))
         self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params)
         self._replay = LogReplay(log_file) if log_file else None
@@ -44,7 +45,8 @@ class BridgeNode(Node):
         self.create_service(SetBool, 'bridge/arm', self._on_arm)
         self.create_timer(params.cycle_time, self._on_tick)
         self.create_timer(self._diag_period, self._on_diag)
-        self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}')
+        self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}'
+                               + (', auto-arm (simulation)' if params.auto_arm else ''))
 
     def _on_command(self, msg):
         self._gw.set_command(convert.command_from_msg(msg), time.monotonic())
