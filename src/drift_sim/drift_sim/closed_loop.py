@@ -188,6 +188,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                           solve_times, wall)
     out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
                                                loaded.path.length)
+    if sc.control_mode == 'torque_only':   # the NMPC's steering is a proposal (paper Sec. VI-B)
+        out.update(metrics.steer_proposal_diff(data['t'], data['delta_cmd'], data['delta'],
+                                               sc.metrics.steady))
     out.update(scenario=sc.name, seed=sim.plant.seed, controller=controller,
                overrides=list(overrides), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=plant,

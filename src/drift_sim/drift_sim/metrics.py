@@ -66,6 +66,36 @@ def laps(t, s, windows, lap_length: float) -> float:
     return travelled / lap_length if lap_length > 0 else math.nan
 
 
+def steer_proposal_diff(t, delta_proposed, delta_applied, windows) -> dict:
+    """The NMPC's steering proposal against the applied (driver's) steering in the windows.
+
+    The paper's semi-automated comparison (Sec. VI-B): in TORQUE_ONLY mode ``command.delta`` is
+    what the NMPC would steer, the driver's angle is what the car got.
+
+    Parameters
+    ----------
+    t : array
+        Sample times [s].
+    delta_proposed, delta_applied : array
+        Proposed and applied road-wheel angles [rad]; NaN samples (no command yet) are skipped.
+    windows : sequence of (t0, t1)
+        Steady-drift windows [s].
+
+    Returns
+    -------
+    dict
+        ``steer_proposal_diff_max_deg`` and ``steer_proposal_diff_rms_deg`` [deg]; NaN without
+        samples.
+    """
+    diff = np.asarray(delta_proposed, dtype=float) - np.asarray(delta_applied, dtype=float)
+    sel = diff[in_windows(t, windows) & np.isfinite(diff)]
+    return {
+        'steer_proposal_diff_max_deg': math.degrees(float(np.abs(sel).max())) if sel.size
+        else math.nan,
+        'steer_proposal_diff_rms_deg': math.degrees(rms(sel)),
+    }
+
+
 def percentiles(values, qs=(50, 99)) -> dict:
     """``{'p50': ..., 'p99': ...}`` of ``values``; NaN for no samples."""
     values = np.asarray(values, dtype=float)
