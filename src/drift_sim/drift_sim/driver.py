@@ -6,7 +6,7 @@ over-rotates (sideslip or yaw rate beyond the intended ones) and less when it st
 steers toward a point on the path ``preview`` seconds ahead::
 
     delta_int = atan((V sin beta_k + a r_k) / (V cos beta_k)) + alpha_F
-    alpha_F   = alpha_ff + w k_beta (beta - beta_des) - k_w (r - r_des) - k_e e_prev
+    alpha_F   = clip(alpha_ff - k_e e_prev, alpha_max) + w k_beta (beta - beta_des) - k_w (r - r_des)
     e_prev    = e_y + V T_p sin(psi - psi_path + beta)              (lateral error ahead)
 
 with ``beta_des`` the path's desired sideslip (signed by the curvature ``K``), ``r_des = V K``,
@@ -47,7 +47,7 @@ class DriverParams:
     k_r_grip: float         # steering per yaw-rate error in grip [rad s/rad]
     k_e: float              # steering per preview lateral error [rad/m]
     preview: float          # look-ahead time of the lateral error [s]
-    alpha_max: float        # largest front slip angle the driver asks for [rad]
+    alpha_max: float        # largest front slip angle the path asks for [rad]
     beta_drift: float       # desired |beta| from which the drift intent is at full weight [rad]
     noise_beta: float       # perception noise of the sideslip, standard deviation [rad]
     noise_r: float          # perception noise of the yaw rate, standard deviation [rad/s]
@@ -117,9 +117,10 @@ class Driver:
         course_error = math.remainder(fp.heading_error + state.beta, 2.0 * math.pi)
         e_prev = fp.e_y + V * p.preview * math.sin(course_error)
         k_w = w * p.k_r + (1.0 - w) * p.k_r_grip
-        alpha = (alpha_ff + w * p.k_beta * (state.beta - beta_des) - k_w * (state.r - r_des)
-                 - p.k_e * e_prev)
-        return kinematic + float(np.clip(alpha, -p.alpha_max, p.alpha_max))
+        # the path asks for a bounded front slip angle; counter-steer is bounded by the end stop
+        alpha_path = float(np.clip(alpha_ff - p.k_e * e_prev, -p.alpha_max, p.alpha_max))
+        return (kinematic + alpha_path + w * p.k_beta * (state.beta - beta_des)
+                - k_w * (state.r - r_des))
 
     def steer(self, state: VehicleState) -> tuple[float, float]:
         """One call: the steering angle [rad] and rate [rad/s] the driver applies now."""
