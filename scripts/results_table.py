@@ -54,9 +54,10 @@ def _fmt(value, spec):
 
 
 def table(rows) -> str:
-    lines = ['| scenario | spun | beta RMS err [deg] | max abs e_y [m] | laps held | '
-             'NMPC vs driver steer max [deg] | safe stop | solve p50 / p99 [ms] | RTF | paper |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+    lines = ['| scenario | spun | beta RMS err [deg] | max abs e_y after entry / in steady parts [m] | '
+             'laps held | left-right flip [s] | NMPC vs driver steer max [deg] | safe stop | '
+             'solve p50 / p99 [ms] | RTF | paper |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
     for (label, _, _, paper), (_, m, _) in rows:
         if 'error' in m:
             lines.append(f'| {label} | error: {m["error"]} | | | | | | | | {paper} |')
@@ -65,7 +66,8 @@ def table(rows) -> str:
         safe = m.get('supervisor_trip_s')
         lines.append(
             f"| {label} | {spun} | {_fmt(m.get('beta_rms_error_deg'), '.2f')} | "
-            f"{_fmt(m.get('max_abs_e_y_m'), '.2f')} | {_fmt(m.get('laps_in_steady_drift'), '.1f')} | "
+            f"{_fmt(m.get('max_abs_e_y_m'), '.2f')} / {_fmt(m.get('max_abs_e_y_steady_m'), '.2f')} | "
+            f"{_fmt(m.get('laps_in_steady_drift'), '.1f')} | {_fmt(m.get('transition_time_s'), '.1f')} | "
             f"{_fmt(m.get('steer_proposal_diff_max_deg'), '.1f')} | "
             f"{'at %.1f s' % safe if safe is not None else '-'} | "
             f"{_fmt(m.get('solve_time_ms_p50'), '.2f')} / {_fmt(m.get('solve_time_ms_p99'), '.2f')} | "

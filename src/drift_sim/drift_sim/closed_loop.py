@@ -188,6 +188,10 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                           solve_times, wall)
     out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
                                                loaded.path.length)
+    out['max_abs_e_y_steady_m'] = metrics.max_abs_in_windows(data['t'], data['e_y'],
+                                                            sc.metrics.steady)
+    out['transition_time_s'] = metrics.transition_time(
+        data['t'], data['beta'], math.radians(sc.metrics.drift_beta_deg + 10.0))
     if sc.control_mode == 'torque_only':   # the NMPC's steering is a proposal (paper Sec. VI-B)
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_cmd'], data['delta'],
                                                sc.metrics.steady))

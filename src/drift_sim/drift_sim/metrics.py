@@ -40,6 +40,24 @@ def max_abs_after(t, values, t_from: float) -> float:
     return float(sel.max()) if sel.size else math.nan
 
 
+def max_abs_in_windows(t, values, windows) -> float:
+    """Largest ``|value|`` inside the windows (e.g. the lateral error in the steady parts)."""
+    sel = np.abs(np.asarray(values, dtype=float)[in_windows(t, windows)])
+    return float(sel.max()) if sel.size else math.nan
+
+
+def transition_time(t, beta, threshold: float) -> float:
+    """Time to flip the drift: from the last ``|beta| > threshold`` on one side to the first on
+    the other side [s]; NaN when the run has no such flip."""
+    t, beta = np.asarray(t, dtype=float), np.asarray(beta, dtype=float)
+    side = np.where(beta > threshold, 1, np.where(beta < -threshold, -1, 0))
+    idx = np.flatnonzero(side)
+    for a, b in zip(idx, idx[1:]):
+        if side[a] != side[b]:
+            return float(t[b] - t[a])
+    return math.nan
+
+
 def spin_time(t, beta, threshold: float = SPIN_BETA) -> float:
     """First time |beta| exceeds ``threshold`` [s]; NaN when the car never spun."""
     idx = np.flatnonzero(np.abs(np.asarray(beta)) > threshold)
