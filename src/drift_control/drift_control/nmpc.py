@@ -22,6 +22,7 @@ from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
 from drift_control.ocp_solvers import make_solver
 from drift_control.params import VehicleParams
 from drift_control.signals import Command, Mode, Reference, Validity, VehicleState
+from drift_control.supervisor import Supervisor, SupervisorParams
 from drift_control.vehicle import U, X
 
 log = logging.getLogger(__name__)
@@ -74,10 +75,14 @@ class Nmpc:
         measured steering is the applied one, ``command.delta`` is the NMPC's proposal).
     mu : float
         Surface friction coefficient [-], a runtime parameter (see ``mu`` attribute).
+    supervisor : SupervisorParams, optional
+        Watch steering authority and the sideslip envelope; a trip latches the fallback until
+        ``reset()`` (see ``drift_control.supervisor``). None: no supervisor.
     """
 
     def __init__(self, vehicle_params: VehicleParams, nmpc_params: NmpcParams,
-                 mode: Mode = Mode.FULL, mu: float = 1.0):
+                 mode: Mode = Mode.FULL, mu: float = 1.0,
+                 supervisor: SupervisorParams | None = None):
         if mode not in (Mode.FULL, Mode.TORQUE_ONLY):
             raise ValueError(f'mode must be FULL or TORQUE_ONLY, got {mode!r}')
         self.params, self.mode, self.mu = nmpc_params, Mode(mode), float(mu)
@@ -85,6 +90,7 @@ class Nmpc:
         self.bounds = self.ocp.bounds
         self._solver = make_solver(self.ocp, nmpc_params.solver)
         self._hold = nmpc_params.torque_only_hold_stages if mode == Mode.TORQUE_ONLY else 0
+        self.supervisor = Supervisor(supervisor) if supervisor is not None else None
         self.reset()
 
     def reset(self) -> None:
@@ -97,12 +103,18 @@ class Nmpc:
         self._T_act = 0.0                    # modelled torque at the wheels [Nm]
         self._d = np.zeros(NXO)              # model error per stage (offset-free tracking)
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
+        if getattr(self, 'supervisor', None) is not None:
+            self.supervisor.reset()
 
     # --- one cycle -----------------------------------------------------------------------------
     def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
         """One control cycle at time ``now`` [s] (the clock of the state and reference stamps)."""
         problem = self._input_problem(state, ref, now)
-        if problem is None:
+        tripped = self.supervisor.check(state, ref, self._last, now) \
+            if self.supervisor is not None and self._engaged else None
+        if tripped is not None:   # latched: no more solving into a car that does not follow
+            result = self._fallback(state, ref, now, f'supervisor: {tripped}', 0.0, 0)
+        elif problem is None:
             result = self._solve(state, ref, now)
         else:
             result = self._failed(state, ref, now, problem, solve_time=0.0, iterations=0)
@@ -226,6 +238,11 @@ class Nmpc:
             return NmpcResult(command, False, NmpcStatus.NO_INPUT, solve_time, iterations,
                               math.nan, np.zeros((0, NXO)), np.zeros((0, 2)), reason,
                               self._failures)
+        return self._fallback(state, ref, now, reason, solve_time, iterations)
+
+    def _fallback(self, state, ref, now, reason: str, solve_time: float,
+                  iterations: int) -> NmpcResult:
+        """The safe fallback: torque ramped down, steering rate-limited toward the reference."""
         if self._w is not None:
             log.warning('NMPC fallback: %s', reason)
         self._w = None   # the old plan is no longer a warm start; the next solve starts cold
@@ -235,7 +252,11 @@ class Nmpc:
                           self._failures)
 
     def _fallback_command(self, ref: Reference | None, now: float) -> Command:
-        """Torque ramped toward zero, steering rate-limited toward the reference steering."""
+        """Torque ramped toward zero, steering rate-limited toward the reference steering.
+
+        In TORQUE_ONLY mode the driver steers: the fallback only ramps the torque down and keeps
+        the mode, so no actuator takes the steering from the driver.
+        """
         Ts, p = self.params.Ts, self.params
         last = self._last
         target = ref.target.delta if ref is not None and ref.is_finite() else last.delta
@@ -245,6 +266,8 @@ class Nmpc:
         T_step = p.fallback_torque_rate * Ts
         torque = float(np.clip(last.drive_torque, -T_step, T_step))   # distance left to zero
         torque = last.drive_torque - torque
+        if self.mode == Mode.TORQUE_ONLY:
+            return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
         return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
 
     # --- output ---------------------------------------------------------------------------------

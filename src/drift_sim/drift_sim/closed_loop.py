@@ -42,17 +42,23 @@ class NmpcController:
     scenario's actual one: a ``--set surface.mu=...`` is a friction the controller does not know.
     """
 
-    def __init__(self, cfg: Path, torque_only: bool, surface: str):
+    def __init__(self, cfg: Path, torque_only: bool, surface: str, supervised: bool = True):
         from drift_control.nmpc import Nmpc   # imported when used: ROS-free, but heavy
         from drift_control.ocp import load_nmpc_params
+        from drift_control.supervisor import load_supervisor_params
         params = load_nmpc_params(cfg / 'nmpc.yaml')
         mode = Mode.TORQUE_ONLY if torque_only else Mode.FULL
         mu = load_surface(surface, cfg / 'vehicle' / 'surfaces.yaml').mu
-        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params, mode, mu)
+        supervisor = load_supervisor_params(cfg / 'supervisor.yaml') if supervised else None
+        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params, mode, mu,
+                         supervisor)
         self.period = params.Ts
+        self.trip_time: float | None = None   # when the supervisor latched the fallback [s]
 
     def step(self, state, ref, now):
         result = self.nmpc.step(state, ref, now)
+        if self.trip_time is None and 'supervisor:' in result.message:
+            self.trip_time = now
         return result.command, result.solve_time_s
 
 
@@ -111,7 +117,7 @@ class SingleTrackSim:
 def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                     controller: str = 'nmpc', plant: str = 'double_track',
                     config: str | Path | None = None, progress: bool = False,
-                    stop_on_spin: bool = False) -> tuple[dict, dict]:
+                    stop_on_spin: bool = False, supervised: bool = True) -> tuple[dict, dict]:
     """Run a scenario's closed loop in this process; returns (metrics, time series).
 
     Parameters
@@ -125,6 +131,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     controller : {'nmpc', 'feedforward'}
     plant : {'double_track', 'single_track'}
         'single_track': the controller's own model as the plant (diagnosis of mismatch).
+    supervised : bool
+        Run the NMPC with its supervisor (``config/supervisor.yaml``); False shows what the
+        controller does when nothing stops it (the paper's spin with a weak steering).
     """
     cfg = Path(config) if config else config_dir()
     loaded = load_scenario(scenario, list(overrides), cfg, seed=seed)
@@ -136,7 +145,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     selector = ReferenceSelector(lookup, loaded.path,
                                  load_reference_params(cfg / 'reference.yaml'))
     ctrl = (Feedforward() if controller == 'feedforward' else
-                  NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name))
+            NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name, supervised))
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, cfg)
     every = max(1, int(round(ctrl.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
@@ -188,6 +197,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                           solve_times, wall)
     out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
                                                loaded.path.length)
+    out['supervisor_trip_s'] = getattr(ctrl, 'trip_time', None)
     out['max_abs_e_y_steady_m'] = metrics.max_abs_in_windows(data['t'], data['e_y'],
                                                             sc.metrics.steady)
     out['transition_time_s'] = metrics.transition_time(

@@ -118,5 +118,7 @@ def _build_nmpc(control_mode: str, surface: str | None, config):
         raise ValueError(f'control_mode must be one of {list(modes)}, got {control_mode!r}')
     cfg = Path(config) if config else config_dir()
     mu = load_surface(surface or 'dry', cfg / 'vehicle' / 'surfaces.yaml').mu
+    from drift_control.supervisor import load_supervisor_params
     return Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'),
-                load_nmpc_params(cfg / 'nmpc.yaml'), modes[control_mode], mu=mu)
+                load_nmpc_params(cfg / 'nmpc.yaml'), modes[control_mode], mu=mu,
+                supervisor=load_supervisor_params(cfg / 'supervisor.yaml'))

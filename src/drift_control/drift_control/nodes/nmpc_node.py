@@ -18,6 +18,7 @@ from drift_control.nodes import convert
 from drift_control.ocp import load_nmpc_params
 from drift_control.params import ParamError, config_dir, load_surface, load_vehicle, load_yaml
 from drift_control.signals import Mode
+from drift_control.supervisor import load_supervisor_params
 
 MODES = {'full': Mode.FULL, 'torque_only': Mode.TORQUE_ONLY}
 LEVEL = {Status.OK: DiagnosticStatus.OK, Status.SHIFTED: DiagnosticStatus.WARN,
@@ -42,7 +43,8 @@ class NmpcNode(Node):
                                os.path.join(cfg, 'vehicle', 'surfaces.yaml'))
         params = load_nmpc_params(os.path.join(cfg, 'nmpc.yaml'))
         vehicle = load_vehicle(os.path.join(cfg, 'vehicle', 'm3_competition.yaml'))
-        self._nmpc = Nmpc(vehicle, params, MODES[mode], mu=surface.mu)
+        supervisor = load_supervisor_params(os.path.join(cfg, 'supervisor.yaml'))
+        self._nmpc = Nmpc(vehicle, params, MODES[mode], mu=surface.mu, supervisor=supervisor)
         self._state = self._ref = self._last = None
         command_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
