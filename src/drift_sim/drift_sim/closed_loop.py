@@ -43,7 +43,7 @@ class NmpcController:
     """
 
     def __init__(self, cfg: Path, torque_only: bool, surface: str, supervised: bool = True):
-        from drift_control.nmpc import Nmpc   # imported when used: ROS-free, but heavy
+        from drift_control.nmpc import STATE_NAMES, Nmpc   # imported when used: heavy
         from drift_control.ocp import load_nmpc_params
         from drift_control.supervisor import load_supervisor_params
         params = load_nmpc_params(cfg / 'nmpc.yaml')
@@ -54,9 +54,14 @@ class NmpcController:
                          supervisor)
         self.period = params.Ts
         self.trip_time: float | None = None   # when the supervisor latched the fallback [s]
+        self._delta_col = STATE_NAMES.index('delta')
+        self.plan_delta = math.nan
 
     def step(self, state, ref, now):
         result = self.nmpc.step(state, ref, now)
+        # the steering the NMPC plans for the end of its horizon (TORQUE_ONLY: never applied)
+        plan = result.predicted_states
+        self.plan_delta = float(plan[-1, self._delta_col]) if plan.size else math.nan
         if self.trip_time is None and 'supervisor:' in result.message:
             self.trip_time = now
         return result.command, result.solve_time_s
@@ -154,7 +159,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     command, ref = None, None
     log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu',
                            'beta_ref',
-                           'beta_des', 'delta_cmd', 'T_cmd')}
+                           'beta_des', 'delta_cmd', 'delta_plan', 'T_cmd')}
     solve_times = []
     bar = None
     if progress:
@@ -178,6 +183,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                            ('mu', tr.mu), ('beta_des', tr.beta_des),
                            ('beta_ref', ref.target.beta if ref is not None else math.nan),
                            ('delta_cmd', command.delta if command else math.nan),
+                           ('delta_plan', getattr(ctrl, 'plan_delta', math.nan)),
                            ('T_cmd', command.drive_torque if command else math.nan)):
             log[key].append(value)
         if bar is not None:
@@ -205,6 +211,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     if sc.control_mode == 'torque_only':   # the NMPC's steering is a proposal (paper Sec. VI-B)
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_cmd'], data['delta'],
                                                sc.metrics.steady))
+        out.update(metrics.steer_proposal_diff(data['t'], data['delta_plan'], data['delta'],
+                                               sc.metrics.steady, name='steer_plan'))
     out.update(scenario=sc.name, seed=sim.plant.seed, controller=controller,
                overrides=list(overrides), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=plant,

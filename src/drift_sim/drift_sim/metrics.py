@@ -84,11 +84,15 @@ def laps(t, s, windows, lap_length: float) -> float:
     return travelled / lap_length if lap_length > 0 else math.nan
 
 
-def steer_proposal_diff(t, delta_proposed, delta_applied, windows) -> dict:
+def steer_proposal_diff(t, delta_proposed, delta_applied, windows,
+                        name: str = 'steer_proposal') -> dict:
     """The NMPC's steering proposal against the applied (driver's) steering in the windows.
 
     The paper's semi-automated comparison (Sec. VI-B): in TORQUE_ONLY mode ``command.delta`` is
-    what the NMPC would steer, the driver's angle is what the car got.
+    what the NMPC would steer, the driver's angle is what the car got. The NMPC plans from the
+    measured angle and holds it ``torque_only_hold_stages``, so ``command.delta`` is at most one
+    stage of steering rate away from it (``delta_dot_max Ts``, 1.15 deg); the steering it plans
+    at the end of its horizon shows how far it would take the wheel.
 
     Parameters
     ----------
@@ -98,19 +102,20 @@ def steer_proposal_diff(t, delta_proposed, delta_applied, windows) -> dict:
         Proposed and applied road-wheel angles [rad]; NaN samples (no command yet) are skipped.
     windows : sequence of (t0, t1)
         Steady-drift windows [s].
+    name : str
+        Key prefix: ``'steer_proposal'`` for ``command.delta``, ``'steer_plan'`` for the steering
+        the NMPC plans at the end of its horizon.
 
     Returns
     -------
     dict
-        ``steer_proposal_diff_max_deg`` and ``steer_proposal_diff_rms_deg`` [deg]; NaN without
-        samples.
+        ``<name>_diff_max_deg`` and ``<name>_diff_rms_deg`` [deg]; NaN without samples.
     """
     diff = np.asarray(delta_proposed, dtype=float) - np.asarray(delta_applied, dtype=float)
     sel = diff[in_windows(t, windows) & np.isfinite(diff)]
     return {
-        'steer_proposal_diff_max_deg': math.degrees(float(np.abs(sel).max())) if sel.size
-        else math.nan,
-        'steer_proposal_diff_rms_deg': math.degrees(rms(sel)),
+        f'{name}_diff_max_deg': math.degrees(float(np.abs(sel).max())) if sel.size else math.nan,
+        f'{name}_diff_rms_deg': math.degrees(rms(sel)),
     }
 
 
