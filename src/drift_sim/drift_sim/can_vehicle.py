@@ -23,16 +23,27 @@ class CanVehicle:
         The scenario on the plant.
     car : drift_vehicle_bridge.vehicle_side.CarSide
         The car's end of the bus (the caller owns and closes its bus).
+    hold_until_engaged : bool
+        Keep the plant at its initial state, still sending state frames, until the first
+        accepted request: a scenario that starts mid-drift then begins when the stack has armed
+        and engaged, not when process start-up and discovery happen to finish.
     """
 
-    def __init__(self, sim: Simulator, car):
+    def __init__(self, sim: Simulator, car, hold_until_engaged: bool = False):
         self.sim, self.car = sim, car
+        self.hold = hold_until_engaged
+        self.engaged = False   # a request has been accepted since the start
         self.released = 0      # steps without an accepted request
         self.command: Command | None = None
 
     def step(self, now: float) -> VehicleState:
         """One 10 ms cycle at ``now`` [s] (the bus side's clock): poll, step, send."""
         command = self.car.poll_command(now)
+        self.engaged = self.engaged or command is not None
+        if self.hold and not self.engaged:
+            state = self.sim.state
+            self.car.send_state(dataclasses.replace(state, stamp=now))
+            return state
         if command is None:
             self.released += 1
             command = Command(now, self.sim.state.delta, 0.0, 0.0, Mode.OFF)

@@ -149,6 +149,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     lookup = load_map(str(cfg.parent / sc.map_file)).lookup
     selector = ReferenceSelector(lookup, loaded.path,
                                  load_reference_params(cfg / 'reference.yaml'))
+    selector.reset(s_hint=sc.initial.s)   # on a path that passes itself, start where the car is
     ctrl = (Feedforward() if controller == 'feedforward' else
             NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name, supervised))
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, cfg)

@@ -128,12 +128,13 @@ class Plant:
 
     def reset(self, V: float = 0.0, beta: float = 0.0, r: float = 0.0, x: float = 0.0,
               y: float = 0.0, yaw: float = 0.0, delta: float = 0.0,
-              drive_torque: float = 0.0) -> VehicleState:
+              drive_torque: float = 0.0, rear_slip: float = 0.0) -> VehicleState:
         """Start a run: body state as given, free-rolling wheels, relaxed slips, zero time.
 
         Parameters are speed [m/s], sideslip [rad], yaw rate [rad/s], pose [m, m, rad],
-        road-wheel angle [rad] and drive torque at the rear axle [Nm]. Returns the first
-        measurement.
+        road-wheel angle [rad], drive torque at the rear axle [Nm] and the rear wheels'
+        longitudinal slip [-] (0: free rolling; an established drift spins them). Returns the
+        first measurement.
         """
         p = self.p
         self.t = 0.0
@@ -153,7 +154,8 @@ class Plant:
             v_x, v_y = vx - r * py, vy + r * px
             v_cx = v_x * math.cos(steer) + v_y * math.sin(steer)
             v_cy = -v_x * math.sin(steer) + v_y * math.cos(steer)
-            s[S[f'OMEGA_{name}']] = v_cx / radius
+            spin = 1.0 + rear_slip if name in ('RL', 'RR') else 1.0
+            s[S[f'OMEGA_{name}']] = spin * v_cx / radius
             s[S[f'ALPHA_{name}']] = -math.atan(v_cy / math.hypot(v_cx, p.wheels.v_eps))
         self.x = s
         self._torque = np.full(self._torque_lag + p.substeps, float(drive_torque))

@@ -45,6 +45,7 @@ class InitialState:
     yaw_rate_from_path: bool = True   # r = V K(s), delta = atan(L K(s)) + delta_deg; else 0
     delta_deg: float = 0.0       # road-wheel angle (added to the kinematic one) [deg]
     drive_torque: float = 0.0    # rear axle torque [Nm]
+    rear_slip: float = 0.0       # rear wheels' longitudinal slip [-] (a drift: they spin)
 
     def __post_init__(self):
         require(self.V >= 0.0, 'initial.V', 'must be >= 0')
@@ -181,4 +182,4 @@ def initial_pose(scenario: Scenario, path: Path, wheelbase: float) -> dict:
     return dict(V=ini.V, beta=beta, r=turning * ini.V * K, x=x0, y=y0,
                 yaw=psi + math.radians(ini.heading_deg),
                 delta=turning * math.atan(wheelbase * K) + math.radians(ini.delta_deg),
-                drive_torque=ini.drive_torque)
+                drive_torque=ini.drive_torque, rear_slip=ini.rear_slip)

@@ -5,6 +5,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
+
 from drift_control.params import ParamError, config_dir, from_dict, load_yaml, require
 
 
@@ -125,6 +127,31 @@ class BridgeParams:
                 f'not on {self.bus.interface!r}')
 
 
+def parse_overrides(items) -> dict:
+    """``['mode.arm_envelope.beta_max=0.6', ...]`` -> ``{'mode': {'arm_envelope': {...}}}``.
+
+    Values are YAML (numbers, booleans, lists); empty items are ignored. The merged result is
+    validated by ``load_bridge_params`` like the file, so a typo is a ParamError naming the key.
+    """
+    out: dict = {}
+    for item in items or ():
+        if not item:
+            continue
+        key, sep, text = item.partition('=')
+        if not sep or not key.strip():
+            raise ParamError(f'bridge override {item!r}: expected key=value')
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            raise ParamError(f'bridge override {item!r}: value is not valid YAML: {err}') from None
+        *path, leaf = key.strip().split('.')
+        node = out
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
 def load_bridge_params(cfg_dir: str | os.PathLike | None = None,
                        overrides: dict | None = None) -> BridgeParams:
     """Load ``bridge.yaml`` from ``cfg_dir`` (default: the project's config directory).
@@ -134,12 +161,17 @@ def load_bridge_params(cfg_dir: str | os.PathLike | None = None,
     """
     cfg_dir = Path(cfg_dir) if cfg_dir else config_dir()
     raw = load_yaml(cfg_dir / 'bridge.yaml')
-    for key, value in (overrides or {}).items():
+    _merge(raw, overrides or {})
+    return from_dict(BridgeParams, raw, 'bridge')
+
+
+def _merge(raw: dict, overrides: dict) -> None:
+    """Merge ``overrides`` into ``raw`` recursively (sections stay, leaves are replaced)."""
+    for key, value in overrides.items():
         if isinstance(value, dict) and isinstance(raw.get(key), dict):
-            raw[key] = {**raw[key], **value}
+            _merge(raw[key], value)
         else:
             raw[key] = value
-    return from_dict(BridgeParams, raw, 'bridge')
 
 
 def dbc_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> Path:

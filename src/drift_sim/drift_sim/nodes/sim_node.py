@@ -36,6 +36,7 @@ class SimNode(Node):
         io = self.declare_parameter('io', 'ros').value
         can_interface = self.declare_parameter('can_interface', 'virtual').value
         can_channel = self.declare_parameter('can_channel', 'drift').value
+        can_hold = self.declare_parameter('can_hold_until_engaged', False).value
         if self._mode not in ('realtime', 'lockstep'):
             raise ValueError(f"clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
         loaded = load_scenario(scenario, [o for o in overrides if o], cfg,
@@ -50,7 +51,7 @@ class SimNode(Node):
             from drift_vehicle_bridge.vehicle_side import CarSide
             self._mode = 'realtime'
             self._can = CanVehicle(self._sim, CarSide.open(interface=can_interface,
-                                                           channel=can_channel))
+                                                           channel=can_channel), can_hold)
         elif io != 'ros':
             raise ValueError(f"io must be 'ros' or 'can', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)

@@ -14,7 +14,7 @@ from drift_control.params import config_dir
 from drift_vehicle_bridge.codec import Codec
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.nodes import convert
-from drift_vehicle_bridge.params import dbc_path, load_bridge_params
+from drift_vehicle_bridge.params import dbc_path, load_bridge_params, parse_overrides
 from drift_vehicle_bridge.replay import LogReplay
 
 
@@ -31,7 +31,11 @@ class BridgeNode(Node):
         bus = {k: v for k, v in bus.items() if v}    # '' / 0: keep config/bridge.yaml's
         log_file = self.declare_parameter('log_file', '').value
         auto_arm = self.declare_parameter('auto_arm', False).value   # virtual/udp_multicast only
-        params = load_bridge_params(cfg, {'bus': bus, **({'auto_arm': True} if auto_arm else {})})
+        overrides = parse_overrides(self.declare_parameter('set', ['']).value)
+        overrides.setdefault('bus', {}).update(bus)
+        if auto_arm:
+            overrides['auto_arm'] = True
+        params = load_bridge_params(cfg, overrides)
         codec = Codec.load(dbc_path(params, cfg))
         self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params)
         self._replay = LogReplay(log_file) if log_file else None
