@@ -21,6 +21,8 @@ from drift_control.signals import Mode
 from drift_control.supervisor import load_supervisor_params
 
 MODES = {'full': Mode.FULL, 'torque_only': Mode.TORQUE_ONLY}
+REALTIME_REFERENCE_WAIT = 0.005   # trigger: state, wall time [s]
+LOCKSTEP_REFERENCE_WAIT = 1.0
 LEVEL = {Status.OK: DiagnosticStatus.OK, Status.SHIFTED: DiagnosticStatus.WARN,
          Status.NO_INPUT: DiagnosticStatus.WARN, Status.FALLBACK: DiagnosticStatus.ERROR}
 
@@ -50,9 +52,15 @@ class NmpcNode(Node):
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
         self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        self._trigger = LockstepTrigger(params.Ts) if trigger == 'state' else None
-        self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
-                                 qos_profile_sensor_data)
+        # under sim time the simulator waits for us: wait for the reference of this very state
+        # (deterministic); in real time at most a few ms, so a late reference never stalls us
+        sim_time = self.get_parameter('use_sim_time').value
+        wait = LOCKSTEP_REFERENCE_WAIT if sim_time else REALTIME_REFERENCE_WAIT
+        self._trigger = LockstepTrigger(params.Ts, wait) if trigger == 'state' else None
+        # best effort matches every publisher; the deeper queue keeps each state of a step
+        state_qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.BEST_EFFORT) \
+            if trigger == 'state' else qos_profile_sensor_data
+        self.create_subscription(VehicleState, 'vehicle/state', self._on_state, state_qos)
         self.create_subscription(DriftReference, 'drift/reference', self._on_ref, 10)
         if self._trigger is None:
             self.create_timer(params.Ts, self._on_tick)   # node clock: honours use_sim_time

@@ -1,4 +1,9 @@
-"""Reference node: vehicle/state -> ReferenceSelector -> drift/reference at a fixed rate."""
+"""Reference node: vehicle/state -> ReferenceSelector -> drift/reference at a fixed rate.
+
+``trigger: timer`` selects on a timer for the newest state; ``trigger: state`` selects for the
+first state at or after each period of state time, as it arrives (deterministic in lock-step:
+the reference always belongs to the state the NMPC solves on).
+"""
 import os
 import sys
 from dataclasses import replace
@@ -40,6 +45,9 @@ class ReferenceNode(Node):
         scenario = self.declare_parameter('scenario', '').value
         path_file = self.declare_parameter('path_file', '').value
         map_file = self.declare_parameter('map_file', '').value
+        trigger = self.declare_parameter('trigger', 'timer').value
+        if trigger not in ('timer', 'state'):
+            raise ParamError(f"reference node: trigger {trigger!r} not in ['timer', 'state']")
         params = load_reference_params(os.path.join(cfg, 'reference.yaml'))
         scen = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')) if scenario else {}
         path = load_scenario_path(cfg, scenario, path_file)
@@ -49,19 +57,32 @@ class ReferenceNode(Node):
         self._selector = ReferenceSelector(eqmap.lookup, path, params)
         self._selector.reset(s_hint=(scen.get('initial') or {}).get('s'))  # where paths overlap
         self._state, self._fresh = None, False
+        self._period, self._due = params.period, None   # trigger: state
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
         self.create_publisher(PathMsg, 'drift/path', latched).publish(
             convert.path_to_msg(path, self.get_clock().now()))
-        self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
-                                 qos_profile_sensor_data)
-        self.create_timer(params.period, self._on_tick)
+        if trigger == 'state':   # every state counts: a deeper queue, and no timer
+            self.create_subscription(VehicleState, 'vehicle/state', self._on_state_event,
+                                     QoSProfile(depth=20,
+                                                reliability=ReliabilityPolicy.BEST_EFFORT))
+        else:
+            self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
+                                     qos_profile_sensor_data)
+            self.create_timer(params.period, self._on_tick)
         self.get_logger().info(f'path {path.name}: {path.length:.1f} m; radii {params.radius_min:g}'
                                f'..{params.radius_max:g} m')
 
     def _on_state(self, msg):
         self._state, self._fresh = convert.state_from_msg(msg), True
+
+    def _on_state_event(self, msg):
+        self._on_state(msg)
+        stamp = self._state.stamp
+        if self._due is None or stamp >= self._due - 1e-3:
+            self._due = stamp + self._period
+            self._on_tick()
 
     def _on_tick(self):
         if not self._fresh:   # publish only for new states: a stale state must look stale
