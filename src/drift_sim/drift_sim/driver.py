@@ -6,15 +6,18 @@ over-rotates (sideslip or yaw rate beyond the intended ones) and less when it st
 steers toward a point on the path ``preview`` seconds ahead::
 
     delta_int = atan((V sin beta_k + a r_k) / (V cos beta_k)) + alpha_F
-    alpha_F   = clip(alpha_ff - k_e e_prev, alpha_max) + w k_beta (beta - beta_des) - k_w (r - r_des)
+    alpha_F   = clip(alpha_ff - k_e e_prev, +-alpha_max)
+                + w k_beta (beta - beta_des) - k_w (r - r_des)
     e_prev    = e_y + V T_p sin(psi - psi_path + beta)              (lateral error ahead)
 
 with ``beta_des`` the path's desired sideslip (signed by the curvature ``K``), ``r_des = V K``,
-``alpha_ff`` the linear front slip angle that carries the front axle's share of ``m V^2 K``, and
-``w = min(1, |beta_des| / beta_drift)``, ``k_w = w k_r + (1 - w) k_r_grip``: in a drift (``w = 1``) the kinematic term is taken at the
-intended ``(beta_des, r_des)``, the driver's intent; in grip (``w = 0``) at the perceived
-``(beta, r)``, so it reduces to following the front axle's direction of travel. The law is odd in
-(beta, r, e_y, K): left and right drifts are mirror images.
+``alpha_ff`` the linear front slip angle that carries the front axle's share of ``m V^2 K``,
+``w = min(1, |beta_des| / beta_drift)`` and ``k_w = w k_r + (1 - w) k_r_grip``. In a drift
+(``w = 1``) the kinematic term is taken at the intended ``(beta_des, r_des)``, the driver's
+intent; in grip (``w = 0``) at the perceived ``(beta, r)``, so it reduces to following the front
+axle's direction of travel. The path asks for a bounded slip angle; the counter-steer is bounded
+only by the end stop. The law is odd in (beta, r, e_y, K): left and right drifts are mirror
+images.
 
 The driver perceives what a human perceives -- speed, sideslip, yaw rate, pose on the path --
 from the measured state, with Gaussian perception noise; acts on what it perceived
