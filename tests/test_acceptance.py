@@ -1,0 +1,96 @@
+"""The paper's claims, reproduced closed loop: single-track NMPC against the double-track plant.
+
+Each scenario runs in full through ``drift_sim.closed_loop.run_closed_loop`` (the loop of
+``scripts/simulate.py``); tolerances are the paper's where it gives one, else they bound what a
+working drift controller must do. Runs are shared across tests; each takes ~5-15 s of wall time.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from drift_sim.closed_loop import run_closed_loop
+
+pytestmark = pytest.mark.slow
+
+ROBUST = ('surface.mu=0.95', 'plant.body.m=2013.0', 'plant.powertrain.delay=0.05')
+_cache = {}
+
+
+def run(scenario, *overrides, supervised=True):
+    key = (scenario, overrides, supervised)
+    if key not in _cache:
+        _cache[key] = run_closed_loop(scenario, overrides, supervised=supervised)
+    return _cache[key]
+
+
+def held(m, laps=None, beta_rms_max=1.0):
+    """A drift held: no spin, no supervisor trip, sideslip on its reference, enough laps."""
+    assert not m['spun'], f"spun at {m['spin_time_s']} s"
+    assert m['supervisor_trip_s'] is None, f"supervisor tripped at {m['supervisor_trip_s']} s"
+    assert m['beta_rms_error_deg'] < beta_rms_max
+    if laps is not None:
+        assert m['laps_in_steady_drift'] >= laps
+
+
+@pytest.mark.parametrize('scenario, e_y_max', [('steady_dry', 1.5), ('steady_wet', 2.0)])
+def test_30_deg_held_for_three_laps_on_dry_and_wet(scenario, e_y_max):
+    m, trace = run(scenario)
+    held(m, laps=3.0)
+    assert m['max_abs_e_y_m'] < e_y_max
+
+
+def test_alternating_left_then_right_drift():
+    m, trace = run('alternating_dry')
+    held(m)
+    # the paper's 1 m holds in the settled left and right drifts; the car overshoots the right
+    # circle by a few metres right after the flip (README: known limitations)
+    assert m['max_abs_e_y_steady_m'] <= 1.0
+    assert m['max_abs_e_y_m'] < 6.0
+    assert m['transition_time_s'] < 2.0        # |beta| > 20 deg left to > 20 deg right
+    beta = np.degrees(trace['beta'])
+    assert beta.min() < -25.0 and beta.max() > 25.0, 'both drifts reached'
+
+
+def test_held_drift_robust_to_friction_mass_and_actuator_delay():
+    m, _ = run('steady_dry', *ROBUST)
+    held(m, laps=3.0)
+    assert m['max_abs_e_y_m'] < 1.5
+
+
+@pytest.mark.xfail(strict=True, reason='known: with mu -5 %, mass +10 % and +20 ms torque delay '
+                   'the NMPC brakes the car to a standstill during the drift entry')
+def test_alternating_robust_to_friction_mass_and_actuator_delay():
+    m, _ = run('alternating_dry', *ROBUST)
+    held(m, beta_rms_max=2.0)
+
+
+@pytest.mark.parametrize('scenario', ['semi_auto_dry', 'semi_auto_wet'])
+def test_semi_automated_driver_steers_nmpc_torque_holds_30_deg(scenario):
+    m, _ = run(scenario)
+    held(m, laps=3.0, beta_rms_max=2.0)
+    # the NMPC's own steering stays near the driver's (paper: ~5 deg); its command is the
+    # measured angle plus one stage, so the plan 0.5 s ahead is the informative comparison
+    assert m['steer_proposal_diff_max_deg'] < 5.0
+    assert m['steer_plan_diff_rms_deg'] < 5.0
+
+
+def test_weak_power_steering_is_detected_and_the_stack_stops_pressing_on():
+    """The paper's 30 Nm EPS: the steering cannot hold the counter-steer.
+
+    Without the supervisor the NMPC presses on and the car leaves the path by metres; with it
+    the stack latches its fallback in the drift and the drive torque goes to zero.
+    """
+    unsupervised, _ = run('eps_limited_dry', supervised=False)
+    assert unsupervised['spun'] or unsupervised['max_abs_e_y_m'] > 10.0
+    m, trace = run('eps_limited_dry')
+    trip = m['supervisor_trip_s']
+    assert trip is not None and trip > 3.0, 'tripped in the drift, not in the grip phase'
+    t, torque = trace['t'], trace['T_cmd']
+    assert np.all(np.abs(torque[t > trip + 2.0]) < 1.0), 'torque ramped to zero after the trip'
+
+
+def test_established_drift_is_held_tightly():
+    m, _ = run('drift_hold_dry')
+    held(m, beta_rms_max=0.5)
+    assert m['max_abs_e_y_m'] < 1.0
