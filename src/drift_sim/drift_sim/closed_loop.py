@@ -203,7 +203,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                           sc.metrics.transient_end, math.radians(sc.metrics.drift_beta_deg),
                           solve_times, wall)
     out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
-                                               loaded.path.length)
+                                               loaded.path.length) if loaded.path.closed else None
     out['supervisor_trip_s'] = getattr(ctrl, 'trip_time', None)
     out['max_abs_e_y_steady_m'] = metrics.max_abs_in_windows(data['t'], data['e_y'],
                                                             sc.metrics.steady)
