@@ -45,7 +45,7 @@ def test_alternating_manoeuvre_on_the_real_map(dry):
         course += turn
     s = np.array([r.s for r in refs])
     assert s[-1] > path.length - 2.0, 'drove the whole manoeuvre'
-    left = [r for r in refs if 60.0 < r.s < 80.0]
+    left = [r for r in refs if 110.0 < r.s < 130.0]   # past the grip phase and the 80 m ramp
     right = [r for r in refs if r.s > path.length - 40.0]
     for group, sign in ((left, 1), (right, -1)):
         for r in group:

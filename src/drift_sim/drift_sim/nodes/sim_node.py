@@ -15,6 +15,9 @@ from drift_sim.scenario import load_scenario
 from drift_sim.simulator import Simulator
 
 
+STATE_REPEAT = 0.2   # lock-step: offer the first state again this often until a command [s]
+
+
 class SimNode(Node):
     """Steps the simulator in real time, or in lock-step with the controller on sim time.
 
@@ -44,6 +47,7 @@ class SimNode(Node):
         self._sim = Simulator(loaded)
         self._gate = LockstepGate(self._sim.dt, period, timeout, startup, wait_reference)
         self._command = None
+        self._offered = time.monotonic()
         self._reported = 0
         self._can = None
         if io == 'can':
@@ -78,6 +82,12 @@ class SimNode(Node):
         if self._sim.done:
             return
         if self._mode == 'lockstep':
+            if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
+                # a node that joins late (the NMPC compiling its solver on first use) must still
+                # see the first state: offer it again until the first command (state only; the
+                # recorded truth and clock stay one message per step)
+                self._offered = time.monotonic()
+                self._state_pub.publish(convert.state_to_msg(self._sim.state, self._sim.t))
             # as many steps as the gate allows (up to the next command), then back to spin
             for _ in range(self._gate.every):
                 if self._sim.done or not self._gate.ready(self._sim.t, time.monotonic()):
