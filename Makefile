@@ -2,7 +2,7 @@
 # Both bring .venv up to date first (scripts/setup.sh; seconds when nothing changed).
 PY       := .venv/bin/python
 GRAPH    ?= sim
-DURATION ?= 20
+DURATION ?= 30
 SCENARIO ?=
 RUN      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
 

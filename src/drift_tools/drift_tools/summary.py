@@ -76,6 +76,15 @@ def run_metrics(messages: dict[str, list[BagMessage]]) -> dict[str, float]:
         out['nmpc_solve_time_mean_ms'] = float(1e3 * np.mean(solve))
         out['nmpc_solve_time_max_ms'] = float(1e3 * np.max(solve))
         out['nmpc_ok_fraction'] = float(np.mean([s.status == 0 for s in status]))
+    if states and refs:   # the drift metrics of the run report (one definition of each)
+        from drift_tools.report import run_metrics as drift_metrics
+        from drift_tools.timeseries import series_from_bag
+        m = drift_metrics(series_from_bag(messages))
+        for key in ('beta_rms_error_deg', 'mean_abs_beta_steady_deg', 'max_abs_e_y_m',
+                    'time_in_drift_s', 'spun'):
+            value = m.get(key)
+            if value is not None and (not isinstance(value, float) or math.isfinite(value)):
+                out[key] = float(value)
     return out
 
 
