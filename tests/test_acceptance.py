@@ -69,9 +69,9 @@ def test_alternating_robust_to_friction_mass_and_actuator_delay():
 def test_semi_automated_driver_steers_nmpc_torque_holds_30_deg(scenario):
     m, _ = run(scenario)
     held(m, laps=3.0, beta_rms_max=2.0)
-    # the NMPC's own steering stays near the driver's (paper: ~5 deg); its command is the
-    # measured angle plus one stage, so the plan 0.5 s ahead is the informative comparison
-    assert m['steer_proposal_diff_max_deg'] < 5.0
+    # the NMPC's own steering stays near the driver's (paper: ~5 deg). Its command is the
+    # measured angle plus one 20 ms stage (within 1.15 deg by construction), so the comparison
+    # that can fail is its plan 0.5 s ahead against the driver's steering
     assert m['steer_plan_diff_rms_deg'] < 5.0
 
 
