@@ -43,10 +43,10 @@ def test_30_deg_held_for_three_laps_on_dry_and_wet(scenario, e_y_max):
 def test_alternating_left_then_right_drift():
     m, trace = run('alternating_dry')
     held(m)
-    # the paper's 1 m holds in the settled left and right drifts; the car overshoots the right
-    # circle by a few metres right after the flip (README: known limitations)
-    assert m['max_abs_e_y_steady_m'] <= 1.0
-    assert m['max_abs_e_y_m'] < 6.0
+    # the paper's figure: max lateral deviation 1 m after the entry. Measured 1.03-1.31 m over
+    # seeds 0-4, the maximum just after the flip (before the course-consistent yaw reference
+    # and the path-side flip: 4.4 m)
+    assert m['max_abs_e_y_m'] < 1.5
     assert m['transition_time_s'] < 2.0        # |beta| > 20 deg left to > 20 deg right
     beta = np.degrees(trace['beta'])
     assert beta.min() < -25.0 and beta.max() > 25.0, 'both drifts reached'
@@ -59,7 +59,7 @@ def test_held_drift_robust_to_friction_mass_and_actuator_delay():
 
 
 @pytest.mark.xfail(strict=True, reason='known: with mu -5 %, mass +10 % and +20 ms torque delay '
-                   'the NMPC brakes the car to a standstill during the drift entry')
+                   'the entry now holds, but the car spins out of the left -> right flip')
 def test_alternating_robust_to_friction_mass_and_actuator_delay():
     m, _ = run('alternating_dry', *ROBUST)
     held(m, beta_rms_max=2.0)

@@ -125,6 +125,22 @@ def test_closed_loop_converges_to_30deg_drift(nmpc, plant, eq30):
     assert abs(np.mean(beta_err)) < 0.2, 'offset-free: no steady beta offset from the mu error'
 
 
+def test_model_error_is_learnt_only_in_a_steady_drift(nmpc, plant, eq30):
+    """Learnt while holding the drift on a friction error; decays once the reference moves
+    (a flip: no side), since a constant error fitted to a transient spoils the prediction."""
+    xs, _ = run_loop(nmpc, plant, eq30, perturbed_start(eq30), 3.0, mu_plant=0.95)
+    learnt = np.abs(nmpc.model_error).max()
+    assert learnt > 1e-4
+    x = xs[-1]
+    for k in range(25):
+        now = 3.0 + k * TS
+        res = nmpc.step(measure(x, now), Reference(now, eq30, Direction.NONE), now)
+        for _ in range(2):
+            x = np.asarray(plant(x, [res.command.delta_rate, res.command.drive_torque],
+                                 [0.0, 0.95])).ravel()
+    assert np.abs(nmpc.model_error).max() < 0.2 * learnt
+
+
 def test_paper_formulation_converges_too(vp, params, plant, eq30):
     """No model-error estimate, ideal actuator (the paper's NMPC): converges, with an offset."""
     paper = dataclasses.replace(params, disturbance_gain=0.0, torque_lag=0.0,

@@ -2,6 +2,7 @@
 import logging
 import math
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -178,7 +179,7 @@ def test_left_right_transition_is_continuous(transition):
     """Along the alternating manoeuvre at 50 Hz the reference moves a bounded amount per step."""
     prof = P.SideslipProfile(math.radians(30.0), math.radians(2.0), 20.0, 15.0)
     path = P.alternating(R, transition, sideslip=prof)
-    p = params()
+    p = params(course_yaw=False)     # the equilibria themselves; course_yaw: its own test
     sel = ReferenceSelector(steady_circle_lookup, path, p)
     V, dt = 10.0, 0.02
     refs = [sel.select(state_on(path, s, t=k * dt)) for k, s in
@@ -208,12 +209,65 @@ def test_horizon_sees_the_transition_coming():
     prof = P.SideslipProfile(math.radians(30.0))
     path = P.alternating(R, 10.0, laps_first=1.0, sideslip=prof)
     sel = ReferenceSelector(steady_circle_lookup, path, params(horizon_steps=25,
-                                                               horizon_dt=0.04))
+                                                               horizon_dt=0.04,
+                                                               course_yaw=False))
     s_flip = 2 * math.pi * R + 5.0
     ref = sel.select(state_on(path, s_flip - 6.0, V=10.0))
     assert len(ref.horizon) == 25 and ref.horizon[0] == ref.target
     assert ref.target.r > 0 and ref.horizon[-1].r < 0, 'the last stages already drift right'
     assert np.all(np.diff([e.r for e in ref.horizon]) <= 1e-12), 'monotone towards the right'
+
+
+def constant_speed_lookup(beta_abs, radius, direction):
+    """Equilibria all at 10 m/s: yaw rate V / R, sideslip -direction * beta_abs."""
+    eq, clamped = steady_circle_lookup(beta_abs, radius, direction)
+    radius = min(max(radius, RADIUS_RANGE[0]), RADIUS_RANGE[1])
+    return replace(eq, V=10.0, r=int(direction) * 10.0 / radius), clamped
+
+
+@pytest.mark.parametrize('course_yaw, course_error_max_deg', [(True, 3.0), (False, None)])
+def test_course_yaw_keeps_the_velocity_direction_turning_with_the_path(course_yaw,
+                                                                     course_error_max_deg):
+    """A car that follows the references exactly (yaw rate r_ref, sideslip beta_ref) through
+    the left -> right flip at 10 m/s: its course psi + beta must turn as the path does.
+
+    Without the correction the course turns by the whole sideslip change (60 deg) too far.
+    """
+    prof = P.SideslipProfile(math.radians(30.0))
+    path = P.alternating(R, 30.0, laps_first=1.0, sideslip=prof)
+    p = params(horizon_steps=25, course_yaw=course_yaw, side_band=0.045, radius_max=40.0)
+    sel = ReferenceSelector(constant_speed_lookup, path, p)
+    V, dt = 10.0, 0.02
+    s0 = 2 * math.pi * R - 20.0          # settled left drift, before the clothoid
+    refs = [sel.select(state_on(path, s, t=k * dt)) for k, s in
+            enumerate(np.arange(s0, s0 + 60.0, V * dt))]
+    assert refs[0].direction == Direction.LEFT and refs[-1].direction == Direction.RIGHT
+    yaw = np.cumsum([0.0] + [r.target.r * dt for r in refs[:-1]])
+    course = yaw + np.array([r.target.beta for r in refs])
+    path_heading = np.cumsum([0.0] + [r.curvature * V * dt for r in refs[:-1]])
+    error = np.degrees(np.abs((course - course[0]) - path_heading))
+    if course_error_max_deg is not None:
+        assert error.max() < course_error_max_deg
+    else:
+        assert error[-1] == pytest.approx(60.0, abs=3.0)
+
+
+def test_lateral_correction_does_not_flip_the_drift_side():
+    """Mid-clothoid, where the path still curves left, a car 3 m right of the path (a large
+    correction to the left) and one 3 m left (to the right) both keep the path's side."""
+    prof = P.SideslipProfile(math.radians(30.0))
+    path = P.alternating(R, 30.0, laps_first=1.0, sideslip=prof)
+    p = params(horizon_steps=0, side_band=0.045, radius_max=40.0, correction_limit=0.05)
+    s = 2 * math.pi * R + 10.0            # K(s) = +1/45: left, inside the blend band
+    sides = []
+    for e_y in (-3.0, 0.0, 3.0):
+        sel = ReferenceSelector(steady_circle_lookup, path, p)
+        sel.reset(s_hint=s)          # the path passes near itself: project locally
+        ref = sel.select(state_on(path, s, e_y))
+        assert (ref.curvature_cmd - ref.curvature) * e_y <= -0.01 * abs(e_y), 'towards the path'
+        sides.append(ref.target.beta)
+    assert sides[0] == pytest.approx(sides[1]) and sides[2] == pytest.approx(sides[1])
+    assert sides[1] < 0.0, 'still (mostly) the left drift'
 
 
 def test_params_file_loads_and_bad_keys_are_named():

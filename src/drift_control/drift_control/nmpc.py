@@ -21,13 +21,19 @@ import numpy as np
 from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
 from drift_control.ocp_solvers import make_solver
 from drift_control.params import VehicleParams
-from drift_control.signals import Command, Mode, Reference, Validity, VehicleState
+from drift_control.signals import Command, Direction, Mode, Reference, Validity, VehicleState
 from drift_control.supervisor import Supervisor, SupervisorParams
 from drift_control.vehicle import U, X
 
 log = logging.getLogger(__name__)
 
 STATE_NAMES = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta')
+_MIRROR = np.array([1.0, -1.0, -1.0, 1.0, 1.0, -1.0])   # left <-> right: beta, r, delta change sign
+
+
+def _side_sign(ref: Reference) -> np.ndarray:
+    """Per-state factor from a right drift's frame to a left drift's (its own inverse)."""
+    return _MIRROR if ref.direction == Direction.RIGHT else np.ones(NXO)
 INPUT_NAMES = ('delta_dot', 'T_R')
 
 
@@ -106,6 +112,11 @@ class Nmpc:
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
 
+    @property
+    def model_error(self) -> np.ndarray:
+        """The learnt model error per stage, in a left drift's frame (V .. delta)."""
+        return self._d.copy()
+
     # --- one cycle -----------------------------------------------------------------------------
     def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
         """One control cycle at time ``now`` [s] (the clock of the state and reference stamps)."""
@@ -161,8 +172,8 @@ class Nmpc:
         x_init = ocp.clip_initial_state([state.V, state.beta, state.r, state.omega_F,
                                          state.omega_R, state.delta, T_act, T_last])
         self._T_act = x_init[S_T_ACT]
-        self._update_disturbance(x_init)
-        p = ocp.pack_params(reference_rows(ref, N), self.mu, self._d)
+        self._update_disturbance(x_init, ref)
+        p = ocp.pack_params(reference_rows(ref, N), self.mu, self._d * _side_sign(ref))
         lbw, ubw = ocp.bounds_for(x_init, self._hold)
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
@@ -204,18 +215,37 @@ class Nmpc:
         idx_u = np.minimum(np.arange(n) + shift, n - 1)
         return self.ocp.join(states[idx_x], inputs[idx_u])
 
-    def _update_disturbance(self, x_init) -> None:
+    def _update_disturbance(self, x_init, ref: Reference) -> None:
         """Offset-free tracking: move ``d`` by a share of the last one-step prediction error.
 
-        The steering (the driver's in TORQUE_ONLY) is measured, never a model error. Only after
-        a cycle whose command came from a fresh solve (the prediction then matches what ran).
+        ``d`` is learnt only while the reference is a steady drift: one side, sideslip above
+        ``disturbance_min_beta`` and the same over the horizon. In grip, along the entry ramp
+        and in a flip the model error is large and changes with the state, and a constant
+        ``d`` fitted to it spoils the whole horizon's prediction (it stalled the grip-to-drift
+        entry): there ``d`` decays at the same rate. It is held while the car is further than
+        ``disturbance_beta_band`` from its sideslip reference (no learning from a slide). ``d``
+        is kept for a left drift and mirrored for a right one, so the error learnt before a
+        flip serves after it. In TORQUE_ONLY it is learnt throughout: the driver steers and
+        closes the yaw loop, and the NMPC's torque needs the learnt error through the entry
+        (semi_auto_wet stalled with the gate). The steering (the driver's in TORQUE_ONLY) is
+        measured, never a model error. Only after a cycle whose command came from a fresh solve (the prediction
+        then matches what ran).
         """
-        gain = self.params.disturbance_gain
+        gain, p = self.params.disturbance_gain, self.params
         if gain <= 0.0 or self._x1_pred is None:
             return
-        error = np.asarray(x_init[:NXO]) - self._x1_pred
-        limit = np.asarray(self.params.disturbance_max)
-        self._d = np.clip(self._d + gain * error, -limit, limit)
+        beta_ref = ref.target.beta
+        stages = ref.horizon or (ref.target,)
+        always = self.mode == Mode.TORQUE_ONLY
+        steady = always or (ref.direction != Direction.NONE
+                            and abs(beta_ref) >= p.disturbance_min_beta
+                            and max(abs(e.beta - beta_ref) for e in stages) < 1e-3)
+        if not steady:
+            self._d = (1.0 - gain) * self._d
+        elif always or abs(x_init[X.BETA] - beta_ref) < p.disturbance_beta_band:
+            error = (np.asarray(x_init[:NXO]) - self._x1_pred) * _side_sign(ref)
+            limit = np.asarray(p.disturbance_max)
+            self._d = np.clip(self._d + gain * error, -limit, limit)
         self._x1_pred = None
 
     def _failed(self, state, ref, now, reason: str, solve_time: float,

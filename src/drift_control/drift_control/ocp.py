@@ -115,6 +115,8 @@ class NmpcParams:
     torque_lag: float = 0.0         # powertrain: first-order lag of the drive torque [s]; 0: none
     disturbance_gain: float = 0.0   # offset-free: share of the prediction error taken per step
     disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per stage
+    disturbance_beta_band: float = 0.05   # learn d only within this of the beta reference [rad]
+    disturbance_min_beta: float = 0.2     # ... of a drift reference (|beta_ref| above) [rad]
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
