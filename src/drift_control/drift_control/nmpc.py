@@ -28,13 +28,13 @@ from drift_control.vehicle import U, X
 log = logging.getLogger(__name__)
 
 STATE_NAMES = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta')
+INPUT_NAMES = ('delta_dot', 'T_R')
 _MIRROR = np.array([1.0, -1.0, -1.0, 1.0, 1.0, -1.0])   # left <-> right: beta, r, delta change sign
 
 
 def _side_sign(ref: Reference) -> np.ndarray:
     """Per-state factor from a right drift's frame to a left drift's (its own inverse)."""
     return _MIRROR if ref.direction == Direction.RIGHT else np.ones(NXO)
-INPUT_NAMES = ('delta_dot', 'T_R')
 
 
 class NmpcStatus(IntEnum):
@@ -228,8 +228,8 @@ class Nmpc:
         flip serves after it. In TORQUE_ONLY it is learnt throughout: the driver steers and
         closes the yaw loop, and the NMPC's torque needs the learnt error through the entry
         (semi_auto_wet stalled with the gate). The steering (the driver's in TORQUE_ONLY) is
-        measured, never a model error. Only after a cycle whose command came from a fresh solve (the prediction
-        then matches what ran).
+        measured, never a model error. Only after a cycle whose command came from a fresh solve
+        (the prediction then matches what ran).
         """
         gain, p = self.params.disturbance_gain, self.params
         if gain <= 0.0 or self._x1_pred is None:

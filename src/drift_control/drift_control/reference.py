@@ -9,9 +9,11 @@ and the altered curvature indexes the lookup table. Here::
 with positive gains: a car left of the path (``e_y > 0``) is asked to turn more to the right. On
 a left circle the outside is ``e_y < 0``, so an outside car gets a tighter left curvature.
 ``|K_cmd|`` is limited to the map's curvature range and rate-limited in time. The left and right
-equilibria are blended with a weight that is linear in ``K_cmd`` on ``|K_cmd| < 1/radius_max``
-and rate-limited in time, so a left <-> right transition passes continuously through
-(beta, r, delta) = 0 and takes at least ``1 / side_rate_max`` seconds.
+equilibria are blended with a weight that is a smoothstep in the path's curvature ``K(s)`` on
+``|K| < side_band`` (the side is the path's; the correction only changes the radius) and
+rate-limited in time, so a left <-> right transition passes continuously through
+(beta, r, delta) = 0 and takes at least ``1 / side_rate_max`` seconds. During a flip the yaw-rate
+reference carries ``-d(beta_ref)/dt`` so the course keeps turning with the path (``_course_yaw``).
 """
 from __future__ import annotations
 
@@ -127,11 +129,12 @@ class ReferenceSelector:
         self.frenet.reset(s_hint)
         self._last, self._integral, self._beta_ref, self._w = None, 0.0, None, None
 
-    def side_weight(self, K_cmd: float) -> float:
-        """Weight of the left equilibrium [-]: 1 for ``K_cmd >= 1/radius_max``, 0 for
-        ``K_cmd <= -1/radius_max``, linear in between."""
+    def side_weight(self, K: float) -> float:
+        """Weight of the left equilibrium [-]: 1 for ``K >= band``, 0 for ``K <= -band``, a
+        smoothstep in between (``band = side_band``, or ``1/radius_max``): the sideslip and
+        yaw-rate references start and end a flip without a jump in their rates."""
         band = self.p.side_band or 1.0 / self.p.radius_max
-        u = max(0.0, min(1.0, 0.5 * (1.0 + K_cmd / band)))
+        u = max(0.0, min(1.0, 0.5 * (1.0 + K / band)))
         return u * u * (3.0 - 2.0 * u)
 
     def equilibrium(self, beta_abs: float, K_cmd: float,
@@ -240,10 +243,10 @@ def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium
 
     The velocity direction (course) is ``psi + beta``, so its rate is ``r + d(beta)/dt``. An
     equilibrium has ``d(beta)/dt = 0`` and course rate ``r_eq = V_eq K``; when the reference's
-    sideslip moves (the entry ramp, the left <-> right flip, 60 deg in under a second) the yaw
-    rate must be ``r_eq - d(beta_ref)/dt`` for the course to keep turning with the path. Tracking
-    ``r_eq`` and the moving sideslip together would turn the course by the whole sideslip change
-    (the flip's lateral overshoot: 4.4 m without, 0.6 m with). The rate is a central difference
+    sideslip moves (the left <-> right flip: 60 deg in about 2 s) the yaw rate must be
+    ``r_eq - d(beta_ref)/dt`` for the course to keep turning with the path. Tracking ``r_eq``
+    and the moving sideslip together would turn the course by the whole sideslip change (the
+    flip's lateral overshoot: 4.4 m without, 0.6 m with). The rate is a central difference
     along the stages. Applied while a flip is in the horizon; the entry ramp's rate (~0.1 rad/s)
     is left out: with it the semi-automated entry of one seed spun (measured, not understood).
     """
