@@ -3,6 +3,7 @@ import math
 
 import pytest
 
+from drift_control import path as P
 from drift_control.signals import Direction
 from test_reference_selector import drift_circle, params, state_on, steady_circle_lookup
 
@@ -35,3 +36,25 @@ def test_integral_builds_only_while_the_car_is_settled_in_its_drift():
     # is steered out), by k_i * 1 m * 2 s
     ref = run(sel, path, 1.0, math.radians(-30.0), 2.0, t0=4.0)
     assert K - ref.curvature_cmd == pytest.approx(0.01 * 1.0 * 2.0, rel=0.05)
+
+
+def test_integral_learnt_in_the_left_drift_is_mirrored_for_the_right_drift():
+    """The integral holds a steady curvature offset of the drift (the car turns less tightly
+    than its equilibrium): after the flip the right drift needs the mirror image. Carried over
+    unmirrored it steered the car 1 m to the inside of the right circle."""
+    prof = P.SideslipProfile(math.radians(30.0))
+    path = P.alternating(15.0, 30.0, laps_first=1.0, sideslip=prof)
+    sel = ReferenceSelector(steady_circle_lookup, path,
+                            params(k_p=0.0, k_d=0.0, k_i=0.01, integral_limit=10.0,
+                                   integral_band=1.5, side_band=0.045, radius_max=40.0,
+                                   horizon_steps=0))
+    left = run(sel, path, 1.0, math.radians(-30.0), 2.0)          # s 30 -> 50 m, left circle
+    offset = left.curvature_cmd - left.curvature
+    assert offset == pytest.approx(-0.01 * 1.0 * 2.0, rel=0.05)
+    # on through the flip on the path (nothing more to integrate), into the right circle
+    dt, V = 0.02, 10.0
+    for k in range(int(9.0 / dt)):
+        t = 2.0 + k * dt
+        right = sel.select(state_on(path, 50.0 + V * (t - 2.0), 0.0, t=t, V=V))
+    assert right.direction == Direction.RIGHT
+    assert right.curvature_cmd - right.curvature == pytest.approx(-offset, rel=0.02)

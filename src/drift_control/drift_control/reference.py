@@ -169,7 +169,12 @@ class ReferenceSelector:
         fp = self.frenet.project(state.x, state.y, state.yaw, state.beta)
         e_y_rate = state.V * math.sin(fp.heading_error + state.beta)
         k_max = 1.0 / p.radius_min
-        correction = p.k_p * fp.e_y + p.k_d * e_y_rate + p.k_i * self._integral
+        # the integral holds the steady curvature offset of a left drift (the car turns less
+        # tightly than its equilibrium says); a right drift needs the mirror image, so it is
+        # scaled by the side, 2 w - 1, which passes through 0 mid-flip (last cycle's weight)
+        side = 1.0 if self._w is None else 2.0 * self._w - 1.0
+        integral = side * self._integral
+        correction = p.k_p * fp.e_y + p.k_d * e_y_rate + p.k_i * integral
         correction = max(-p.correction_limit, min(p.correction_limit, correction))
         K_raw = fp.K - correction
         K_cmd = max(-k_max, min(k_max, K_raw))
@@ -180,9 +185,9 @@ class ReferenceSelector:
         settled = (abs(fp.e_y) < p.integral_band and last is not None
                    and abs(abs(state.beta) - abs(last.target.beta)) < p.integral_beta_band
                    and abs(last.target.beta) > p.integral_beta_band)
-        if settled and not (saturated and fp.e_y * self._integral > 0.0):
+        if settled and not (saturated and fp.e_y * integral > 0.0):
             self._integral = max(-p.integral_limit,
-                                 min(p.integral_limit, self._integral + fp.e_y * dt))
+                                 min(p.integral_limit, self._integral + side * fp.e_y * dt))
         if limited:
             K_cmd = _limit(last.curvature_cmd, K_cmd, p.curvature_rate_max * dt)
         beta_abs = float(self.path.beta_at(fp.s))
