@@ -25,7 +25,7 @@ import numpy as np
 
 from drift_control.equilibrium import solve_equilibrium
 from drift_control.nmpc import Nmpc, reference_rows
-from drift_control.ocp import NXO, NmpcParams, Ocp, SolverParams, load_nmpc_params
+from drift_control.ocp import NXO, NmpcParams, Ocp, load_nmpc_params
 from drift_control.params import config_dir, load_surface, load_vehicle
 from drift_control.signals import Command, Direction, Mode, Reference, VehicleState
 from drift_control.vehicle import VehicleModel

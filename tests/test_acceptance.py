@@ -4,7 +4,6 @@ Each scenario runs in full through ``drift_sim.closed_loop.run_closed_loop`` (th
 ``scripts/simulate.py``); tolerances are the paper's where it gives one, else they bound what a
 working drift controller must do. Runs are shared across tests; each takes ~5-15 s of wall time.
 """
-import math
 
 import numpy as np
 import pytest

@@ -5,7 +5,6 @@ noise: with the path-following correction the car stays within the paper's 1 m o
 the entry transient; the same run with the correction off drifts away from it.
 """
 import dataclasses
-import math
 
 import numpy as np
 import pytest

@@ -4,7 +4,6 @@ import io
 import sys
 import threading
 import time
-from pathlib import Path
 
 import pytest
 import yaml

@@ -75,7 +75,7 @@ class ModelPlant:
 
     def measure(self) -> VehicleState:
         """The state as a sensor would report it, with the configured noise."""
-        x, p = self.x, self.p
+        x = self.x
 
         def noisy(value, key):
             sd = self.noise.get(key, 0.0)

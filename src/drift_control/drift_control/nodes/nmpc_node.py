@@ -3,11 +3,9 @@ import os
 import sys
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from drift_msgs.msg import DriftCommand, DriftReference, NmpcStatus, VehicleState
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.time import Time
@@ -15,6 +13,7 @@ from rclpy.time import Time
 from drift_control.nmpc import LockstepTrigger, Nmpc
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
+from drift_control.nodes.spin import run_node
 from drift_control.ocp import load_nmpc_params
 from drift_control.params import ParamError, config_dir, load_surface, load_vehicle, load_yaml
 from drift_control.signals import Mode
@@ -110,22 +109,8 @@ class NmpcNode(Node):
         self._diag_pub.publish(msg)
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node, code = None, 0
-    try:
-        node = NmpcNode()
-        rclpy.spin(node)
-    except ParamError as err:
-        rclpy.logging.get_logger('nmpc').error(str(err))
-        code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+def main(args=None) -> int:
+    return run_node(NmpcNode, 'nmpc', args)
 
 
 if __name__ == '__main__':

@@ -8,14 +8,13 @@ import os
 import sys
 from dataclasses import replace
 
-import rclpy
 from drift_msgs.msg import DriftReference, VehicleState
 from nav_msgs.msg import Path as PathMsg
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from drift_control.nodes import convert
+from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir, load_yaml
 from drift_control.path import load_scenario_path
 from drift_control.reference import ReferenceSelector, load_reference_params
@@ -93,22 +92,8 @@ class ReferenceNode(Node):
             self._ref_pub.publish(convert.reference_to_msg(ref))
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node, code = None, 0
-    try:
-        node = ReferenceNode()
-        rclpy.spin(node)
-    except ParamError as err:
-        rclpy.logging.get_logger('reference').error(str(err))
-        code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+def main(args=None) -> int:
+    return run_node(ReferenceNode, 'reference', args)
 
 
 if __name__ == '__main__':

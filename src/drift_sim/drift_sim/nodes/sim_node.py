@@ -1,14 +1,14 @@
 """Sim node: the plant as a car -- vehicle/state out every 10 ms, drift/command in (or CAN)."""
+import sys
 import time
 
-import rclpy
 from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from drift_control.nodes import convert
+from drift_control.nodes.spin import run_node
 from drift_control.params import config_dir
 from drift_sim.lockstep import LockstepGate
 from drift_sim.scenario import load_scenario
@@ -72,6 +72,11 @@ class SimNode(Node):
         self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), seed '
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
 
+    def close(self) -> None:
+        """Release the CAN bus of the ``io: can`` mode."""
+        if self._can is not None:
+            self._can.car.bus.shutdown()
+
     def _on_command(self, msg):
         self._command = convert.command_from_msg(msg)
         self._gate.offer(self._command)
@@ -118,21 +123,9 @@ class SimNode(Node):
             self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, now))
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            if node._can is not None:
-                node._can.car.bus.shutdown()
-            node.destroy_node()
-        rclpy.try_shutdown()
+def main(args=None) -> int:
+    return run_node(SimNode, 'sim', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -1,12 +1,12 @@
 """Records every stack topic, as serialized CDR, into a rosbag2 MCAP directory."""
 import importlib
+import sys
 import time
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from drift_control.nodes.spin import run_node
 from drift_control.params import config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
 from drift_tools.recording import STACK_NAMESPACES, STACK_TOPICS, TopicSelector
@@ -102,18 +102,9 @@ class RecorderNode(Node):
         self._writer.close()
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = RecorderNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
+def main(args=None) -> int:
+    return run_node(RecorderNode, 'recorder', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

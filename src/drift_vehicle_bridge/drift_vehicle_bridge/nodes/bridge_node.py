@@ -1,15 +1,15 @@
 """The vehicle bridge node: CAN gateway <-> vehicle/state, drift/command, diagnostics."""
+import sys
 import time
 
 import can
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from drift_msgs.msg import DriftCommand, VehicleState
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
+from drift_control.nodes.spin import run_node
 from drift_control.params import config_dir
 from drift_vehicle_bridge.codec import Codec
 from drift_vehicle_bridge.gateway import Gateway
@@ -84,18 +84,9 @@ class BridgeNode(Node):
             self._gw.bus.shutdown()
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = BridgeNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
+def main(args=None) -> int:
+    return run_node(BridgeNode, 'bridge', args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -1,0 +1,43 @@
+"""How every node process runs: init, spin, a clean end on SIGINT, cleanup and an exit code."""
+from __future__ import annotations
+
+from typing import Callable
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.node import Node
+
+from drift_control.params import ParamError
+
+
+def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
+    """Build the node with ``factory`` and spin it until shutdown; returns the exit code.
+
+    A bad parameter (``ParamError``) is logged as one line and exits 1. SIGINT from the launcher
+    shuts the context down, possibly while a callback is publishing: that publish raises
+    ``RCLError`` ("publisher's context is invalid"), which is the end of the run, not a failure
+    (it failed a lock-step run at its end). The node's ``close()``, if it has one, runs before
+    the node is destroyed (flush a bag, release a CAN bus).
+    """
+    rclpy.init(args=args)
+    node, code = None, 0
+    try:
+        node = factory()
+        rclpy.spin(node)
+    except ParamError as err:
+        rclpy.logging.get_logger(name).error(str(err))
+        code = 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except _rclpy.RCLError:
+        if rclpy.ok():      # a real failure while running
+            raise
+    finally:
+        if node is not None:
+            close = getattr(node, 'close', None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,24 @@
+"""A node whose timer callback publishes after the context was shut down: the race of a SIGINT
+arriving while a callback runs, made deterministic. ``run_node`` must end it with exit code 0."""
+import sys
+
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import Empty
+
+from drift_control.nodes.spin import run_node
+
+
+class PublishAfterShutdown(Node):
+    def __init__(self):
+        super().__init__('publish_after_shutdown')
+        self._pub = self.create_publisher(Empty, 'race', 1)
+        self.create_timer(0.01, self._tick)
+
+    def _tick(self):
+        rclpy.shutdown()          # what the SIGINT handler does, between two lines of a callback
+        self._pub.publish(Empty())
+
+
+if __name__ == '__main__':
+    sys.exit(run_node(PublishAfterShutdown, 'publish_after_shutdown'))

@@ -1,0 +1,17 @@
+"""run_node: the one way every node process runs (init, spin, clean end, exit code)."""
+import subprocess
+
+import pytest
+
+from conftest import PYTHON, TESTS
+
+pytestmark = pytest.mark.ros
+
+
+def test_publish_racing_the_shutdown_ends_the_run_cleanly(node_env):
+    """SIGINT shuts the context down while a callback publishes: exit 0, not a traceback
+    (a lock-step run failed at its end this way)."""
+    proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py')],
+                          env=node_env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert 'Traceback' not in proc.stderr
