@@ -36,14 +36,23 @@ def test_overrides_reach_surface_and_plant():
 
 def test_gate_waits_for_the_command_of_the_step_and_reports_timeouts():
     gate = LockstepGate(dt=0.01, command_period=0.02, timeout=0.5, startup_timeout=5.0)
-    assert gate.ready(0.0, 0.0) and gate.ready(0.01, 0.0), 'nothing is due before 20 ms'
-    assert not gate.ready(0.02, 0.0) and not gate.ready(0.02, 4.9)
-    assert gate.ready(0.02, 5.1) and gate.timeouts == 1, 'startup timeout, counted'
+    assert not gate.ready(0.0, 0.0) and not gate.ready(0.0, 4.9), 'the first state waits too'
+    assert gate.ready(0.0, 5.1) and gate.timeouts == 1, 'startup timeout, counted'
+    assert gate.ready(0.01, 5.1), 'between command periods nothing is due'
+    assert not gate.ready(0.02, 5.2)
     gate.offer(Command(0.02, 0.0, 0.0, 0.0))
-    assert gate.ready(0.03, 6.0) and not gate.ready(0.04, 6.0)
+    assert gate.ready(0.02, 6.0) and gate.ready(0.03, 6.0) and not gate.ready(0.04, 6.0)
     gate.offer(Command(0.04, 0.0, 0.0, 0.0))
     assert gate.ready(0.04, 6.1) and gate.timeouts == 1
     assert not gate.ready(0.06, 7.0) and gate.ready(0.06, 7.6) and gate.timeouts == 2
+
+
+def test_gate_first_command_releases_the_initial_state():
+    gate = LockstepGate(0.01, 0.02, 0.5, 5.0)
+    assert not gate.ready(0.0, 0.0)
+    gate.offer(Command(0.0, 0.0, 0.0, 0.0))
+    assert gate.ready(0.0, 0.1) and gate.ready(0.01, 0.1) and not gate.ready(0.02, 0.1)
+    assert gate.timeouts == 0
 
 
 def test_gate_can_wait_for_the_reference_of_the_state_too():
