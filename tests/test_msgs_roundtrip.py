@@ -74,4 +74,8 @@ def test_drift_reference_round_trip_between_processes(ros_node, node_env):
         assert math.isfinite(median) and median < 0.1, f'round trip median {median:.3f} s'
     finally:
         echo.terminate()
-        echo.wait(10)
+        try:
+            echo.wait(10)
+        except subprocess.TimeoutExpired:   # once (1 of ~6 CI runs) its DDS teardown hung
+            echo.kill()                     # past 10 s; the round trip was already judged
+            echo.wait(5)

@@ -1,9 +1,11 @@
 """Test node: sends every DriftReference from ``ping`` straight back on ``pong``."""
-import rclpy
+import sys
+
 from drift_msgs.msg import DriftReference
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from drift_control.nodes.spin import run_node
 
 
 class Echo(Node):
@@ -14,17 +16,5 @@ class Echo(Node):
         self.create_subscription(DriftReference, 'ping', self.pub.publish, qos)
 
 
-def main(args=None):
-    rclpy.init(args=args)
-    node = Echo()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-
-
 if __name__ == '__main__':
-    main()
+    sys.exit(run_node(Echo, 'echo'))
