@@ -15,3 +15,9 @@ def test_publish_racing_the_shutdown_ends_the_run_cleanly(node_env):
                           env=node_env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert 'Traceback' not in proc.stderr
+
+
+def test_a_failure_while_running_still_fails_the_run(node_env):
+    proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
+                           'fail'], env=node_env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and 'a real failure while running' in proc.stderr

@@ -1,5 +1,6 @@
 """A node whose timer callback publishes after the context was shut down: the race of a SIGINT
-arriving while a callback runs, made deterministic. ``run_node`` must end it with exit code 0."""
+arriving while a callback runs, made deterministic. ``run_node`` must end it with exit code 0.
+With the argument ``fail`` the callback raises while the context is up: that must fail the run."""
 import sys
 
 import rclpy
@@ -16,6 +17,8 @@ class PublishAfterShutdown(Node):
         self.create_timer(0.01, self._tick)
 
     def _tick(self):
+        if 'fail' in sys.argv[1:]:
+            raise ValueError('a real failure while running')
         rclpy.shutdown()          # what the SIGINT handler does, between two lines of a callback
         self._pub.publish(Empty())
 

@@ -5,7 +5,6 @@ from typing import Callable
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from drift_control.params import ParamError
@@ -15,10 +14,12 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     """Build the node with ``factory`` and spin it until shutdown; returns the exit code.
 
     A bad parameter (``ParamError``) is logged as one line and exits 1. SIGINT from the launcher
-    shuts the context down, possibly while a callback is publishing: that publish raises
-    ``RCLError`` ("publisher's context is invalid"), which is the end of the run, not a failure
-    (it failed a lock-step run at its end). The node's ``close()``, if it has one, runs before
-    the node is destroyed (flush a bag, release a CAN bus).
+    shuts the context down, possibly while the executor is inside a callback or taking a
+    message: rclpy then raises from there (``RCLError`` "publisher's context is invalid" on a
+    publish, ``RuntimeError`` "Unable to convert call argument" on a take; each failed a
+    lock-step run at its end in CI). An exception once the context is shut down is the end of
+    the run, not a failure; one while it is still up is raised. The node's ``close()``, if it
+    has one, runs before the node is destroyed (flush a bag, release a CAN bus).
     """
     rclpy.init(args=args)
     node, code = None, 0
@@ -30,7 +31,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
         code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except _rclpy.RCLError:
+    except Exception:
         if rclpy.ok():      # a real failure while running
             raise
     finally:
