@@ -30,6 +30,7 @@ DOMAIN_ID = 110
 RUN_S = 16.0                    # wall-clock run length [s]
 SCENARIO = 'drift_hold_dry'     # handed over in an established 30 deg drift (see its yaml)
 DRIFT_DEG, SPIN_DEG = 20.0, 75.0
+STALL_S = load_bridge_params().monitor.frame_timeout   # a longer simulator stall drops the bridge
 STATE_FRAMES = ('DS_VELOCITY', 'DS_YAW', 'DS_ACCEL', 'DS_WHEELS_FRONT', 'DS_WHEELS_REAR',
                 'DS_STEERING', 'DS_POWERTRAIN', 'DS_POSE_XY', 'DS_POSE_YAW')
 
@@ -154,21 +155,28 @@ def can_loop(tmp_path_factory):
     from drift_tools.timeseries import series_from_bag
 
     _warm_nmpc_codegen()
-    bag = tmp_path_factory.mktemp('can_loop') / 'bag'
-    t0 = time.monotonic()
-    proc = subprocess.run(
-        [*_realtime_prefix(), str(REPO / 'scripts' / 'run_in_netns.sh'), '--duration', str(RUN_S),
-         '--scenario', SCENARIO,
-         '--bag', str(bag), '--domain-id', str(DOMAIN_ID), '--kill-timeout', '5', '--no-summary'],
-        env={**os.environ, 'PYTHON': PYTHON}, capture_output=True, text=True, timeout=60)
-    wall = time.monotonic() - t0
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    messages = read_bag(bag)
-    run = series_from_bag(messages)
+    for attempt in (1, 2):
+        bag = tmp_path_factory.mktemp('can_loop') / 'bag'
+        t0 = time.monotonic()
+        proc = subprocess.run(
+            [*_realtime_prefix(), str(REPO / 'scripts' / 'run_in_netns.sh'), '--duration',
+             str(RUN_S), '--scenario', SCENARIO, '--bag', str(bag), '--domain-id', str(DOMAIN_ID),
+             '--kill-timeout', '5', '--no-summary'],
+            env={**os.environ, 'PYTHON': PYTHON}, capture_output=True, text=True, timeout=60)
+        wall = time.monotonic() - t0
+        assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+        messages = read_bag(bag)
+        run = series_from_bag(messages)
+        t = run.truth['t']
+        # a simulator descheduled past the bridge's 30 ms frame timeout drops the bridge to OFF,
+        # as it must on a car; that run says nothing about the loop: run once more (printed)
+        if np.diff(t).max() <= STALL_S or attempt == 2:
+            break
+        print(f'CAN loop run {attempt}: the simulator stalled {1e3 * np.diff(t).max():.0f} ms '
+              f'(machine load); running again')
     diags = _bridge_diagnostics(messages)
     for d in diags:
         d['_t'] -= run.t0
-    t = run.truth['t']
     m = run_metrics(run)
     timing = (f'simulator {(len(t) - 1) / (t[-1] - t[0]):.1f} steps/s, longest step gap '
               f'{1e3 * np.diff(t).max():.0f} ms (bridge frame timeout 30 ms), NMPC solve p99 '
@@ -225,7 +233,7 @@ def test_can_loop_bus_and_bridge(can_loop):
     env = load_bridge_params().mode.active_envelope
     outside = ~((truth['V'] >= env.V_min) & (truth['V'] <= env.V_max)
                 & (np.abs(truth['beta']) <= env.beta_max) & (np.abs(truth['r']) <= env.r_max))
-    explained = {'ENVELOPE': bool(outside.any()), 'STATE_INVALID': np.diff(t).max() > 0.03}
+    explained = {'ENVELOPE': bool(outside.any()), 'STATE_INVALID': np.diff(t).max() > STALL_S}
     assert all(explained.get(r, False) for r in reasons), \
         f'unexplained drop to OFF: {reasons}; {can_loop.timing}'
 
