@@ -21,3 +21,11 @@ def test_a_failure_while_running_still_fails_the_run(node_env):
     proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
                            'fail'], env=node_env, capture_output=True, text=True, timeout=60)
     assert proc.returncode != 0 and 'a real failure while running' in proc.stderr
+
+
+def test_an_interrupt_surfacing_as_another_error_ends_the_run_cleanly(node_env):
+    """SIGINT inside casadi's DM.__array__ became a SystemError caused by the KeyboardInterrupt
+    and failed a lock-step run at its end in CI."""
+    proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
+                           'interrupt'], env=node_env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]

@@ -1,6 +1,8 @@
 """A node whose timer callback publishes after the context was shut down: the race of a SIGINT
 arriving while a callback runs, made deterministic. ``run_node`` must end it with exit code 0.
-With the argument ``fail`` the callback raises while the context is up: that must fail the run."""
+With the argument ``fail`` the callback raises while the context is up: that must fail the run;
+with ``interrupt`` it raises what a SIGINT inside a C extension becomes (an error caused by a
+KeyboardInterrupt): a clean end again."""
 import sys
 
 import rclpy
@@ -19,6 +21,11 @@ class PublishAfterShutdown(Node):
     def _tick(self):
         if 'fail' in sys.argv[1:]:
             raise ValueError('a real failure while running')
+        if 'interrupt' in sys.argv[1:]:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as err:
+                raise SystemError('returned a result with an exception set') from err
         rclpy.shutdown()          # what the SIGINT handler does, between two lines of a callback
         self._pub.publish(Empty())
 

@@ -17,8 +17,10 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     shuts the context down, possibly while the executor is inside a callback or taking a
     message: rclpy then raises from there (``RCLError`` "publisher's context is invalid" on a
     publish, ``RuntimeError`` "Unable to convert call argument" on a take; each failed a
-    lock-step run at its end in CI). An exception once the context is shut down is the end of
-    the run, not a failure; one while it is still up is raised. The node's ``close()``, if it
+    lock-step run at its end in CI). The interrupt itself may surface inside a C extension
+    as another error (``SystemError`` from casadi's ``DM.__array__``, caused by the
+    ``KeyboardInterrupt``). An exception once the context is shut down, or caused by the
+    interrupt, is the end of the run, not a failure; any other is raised. The node's ``close()``, if it
     has one, runs before the node is destroyed (flush a bag, release a CAN bus).
     """
     rclpy.init(args=args)
@@ -31,8 +33,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
         code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except Exception:
-        if rclpy.ok():      # a real failure while running
+    except Exception as err:
+        if rclpy.ok() and not _interrupted(err):   # a real failure while running
             raise
     finally:
         if node is not None:
@@ -42,3 +44,14 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _interrupted(err: BaseException | None) -> bool:
+    """Whether ``err`` was caused, directly or through its chain, by a KeyboardInterrupt."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
