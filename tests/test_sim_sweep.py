@@ -1,0 +1,81 @@
+"""Seed sweeps: run classification, summaries, and scripts/seed_sweep.py end to end."""
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from drift_sim.sweep import (ERROR, HELD, SPUN, TRIPPED, format_summary, outcome, parse_seeds,
+                             summarise)
+
+SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'seed_sweep.py'
+
+
+def _held(e_y, beta=0.2):
+    return {'spun': False, 'supervisor_trip_s': None, 'max_abs_e_y_m': e_y,
+            'beta_rms_error_deg': beta, 'transition_time_s': None}
+
+
+def test_seed_lists_and_ranges():
+    assert parse_seeds('0-4') == [0, 1, 2, 3, 4]
+    assert parse_seeds('7, 2-3,3') == [2, 3, 7]
+    for bad in ('', '4-1', 'a', '1-b', '-1'):
+        with pytest.raises(ValueError, match='seeds'):
+            parse_seeds(bad)
+
+
+def test_a_spin_counts_before_a_trip_and_an_error_before_both():
+    assert outcome(_held(0.5)) == HELD
+    assert outcome({'spun': True, 'supervisor_trip_s': 5.0}) == SPUN
+    assert outcome({'spun': False, 'supervisor_trip_s': 5.0}) == TRIPPED
+    assert outcome({'error': 'ParamError: x'}) == ERROR
+
+
+def test_summary_spreads_only_over_held_runs():
+    runs = [(0, _held(0.8, 0.2)), (1, _held(1.2, 0.3)), (2, _held(1.0, 0.25)),
+            (3, {'spun': True, 'spin_time_s': 6.5, 'supervisor_trip_s': 6.1,
+                 'max_abs_e_y_m': 40.0, 'beta_rms_error_deg': 120.0})]
+    s = summarise(runs)
+    assert (s['runs'], s['held'], s['as_expected']) == (4, 3, 3)
+    assert s['max_abs_e_y_m'] == {'min': 0.8, 'median': 1.0, 'max': 1.2}
+    assert s['beta_rms_error_deg']['max'] == 0.3
+    assert s['transition_time_s'] is None
+    assert s['not_held'] == [{'seed': 3, 'outcome': SPUN, 'time_s': 6.5, 'error': None}]
+    line = format_summary('alternating_dry', s)
+    assert 'held 3/4' in line and '0.80 / 1.00 / 1.20 m' in line and 'seed 3 spun at 6.5 s' in line
+
+
+def test_expected_spin_scenarios_count_a_stop_as_expected_and_an_error_never():
+    stop = {'spun': False, 'supervisor_trip_s': 4.1, 'expect_spin': True}
+    kept_going = dict(_held(30.0), expect_spin=True)
+    s = summarise([(0, stop), (1, kept_going), (2, {'error': 'RuntimeError: solver'})])
+    assert (s['held'], s['as_expected']) == (1, 1)
+    assert [f['outcome'] for f in s['not_held']] == [TRIPPED, ERROR]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location('seed_sweep', SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_sweep_runs_every_seed_and_writes_the_summary(tmp_path, capsys):
+    pytest.importorskip('drift_control.nmpc')
+    out = tmp_path / 'sweep.json'
+    rc = _script().main(['--scenario', 'drift_hold_dry', '--seeds', '0-1', '--jobs', '1',
+                         '--set', 'duration=2.0', '--json', str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    assert [r['seed'] for r in data['runs']] == [0, 1]
+    # the seed reaches the plant: two seeds, two friction fields and noise draws
+    assert [r['metrics']['seed'] for r in data['runs']] == [0, 1]
+    assert data['runs'][0]['metrics'] != data['runs'][1]['metrics']
+    assert data['summaries']['drift_hold_dry']['runs'] == 2
+    assert 'drift_hold_dry: held' in capsys.readouterr().out
+
+
+def test_a_bad_scenario_is_an_error_row_and_a_failing_exit():
+    rc = _script().main(['--scenario', 'no_such_scenario', '--seeds', '0', '--jobs', '1'])
+    assert rc == 1
