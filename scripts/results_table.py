@@ -1,11 +1,14 @@
 #!/usr/bin/env python3
 """Run every scenario (and the robustness variants) and write the README's results table.
 
-    .venv/bin/python scripts/results_table.py [--jobs 2] [--only steady_dry,...] [--no-readme]
+    .venv/bin/python scripts/results_table.py [--jobs 2] [--seeds 0-9] [--only steady_dry,...]
+        [--no-readme]
 
-Each row is one ``drift_sim.closed_loop.run_closed_loop`` (the same loop as scripts/simulate.py),
-measured in this run; the paper's figure for the same claim stands beside it. Writes
-docs/results.md and replaces the block between the results markers in README.md.
+Each row is ``drift_sim.closed_loop.run_closed_loop`` (the same loop as scripts/simulate.py) on
+every seed of ``--seeds``, measured in this run: the columns are the first seed's run, then how
+many seeds held the drift and the spread of their lateral error (``drift_sim.sweep``); the
+paper's figure for the same claim stands beside it. Writes docs/results.md and replaces the
+block between the results markers in README.md.
 """
 from __future__ import annotations
 
@@ -16,6 +19,8 @@ import multiprocessing
 import sys
 import time
 from pathlib import Path
+
+from drift_sim.sweep import LOST_BETA_RMS_DEG, LOST_E_Y_M, outcome, parse_seeds, summarise
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = '<!-- results:start -->', '<!-- results:end -->'
@@ -38,14 +43,16 @@ RUNS = [
 
 
 def _run(job):
-    label, scenario, overrides, _ = job
+    label, scenario, overrides, seed = job
+    import logging
     from drift_sim.closed_loop import run_closed_loop
+    logging.disable(logging.ERROR)   # supervisor trips: the table says them
     t0 = time.perf_counter()
     try:
-        metrics, _ = run_closed_loop(scenario, overrides)
+        metrics, _ = run_closed_loop(scenario, overrides, seed=seed)
     except Exception as err:   # noqa: BLE001 - one bad row must not lose the others
-        return label, {'error': f'{type(err).__name__}: {err}'}, time.perf_counter() - t0
-    return label, metrics, time.perf_counter() - t0
+        return label, seed, {'error': f'{type(err).__name__}: {err}'}, time.perf_counter() - t0
+    return label, seed, metrics, time.perf_counter() - t0
 
 
 def _fmt(value, spec):
@@ -54,14 +61,25 @@ def _fmt(value, spec):
     return format(value, spec)
 
 
-def table(rows) -> str:
-    lines = ['| scenario | spun | beta RMS err [deg] | max abs e_y after entry / in steady parts [m] | '
-             'laps held | left-right flip [s] | NMPC vs driver steer max [deg] | safe stop | '
-             'solve p50 / p99 [ms] | RTF | paper |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
-    for (label, _, _, paper), (_, m, _) in rows:
+def _held(summary) -> str:
+    """``held/runs``, and the spread of max |e_y| over the held runs."""
+    e_y = summary['max_abs_e_y_m']
+    spread = (f" ({e_y['min']:.2f} / {e_y['median']:.2f} / {e_y['max']:.2f})"
+              if e_y is not None and summary['runs'] > 1 else '')
+    return f"{summary['held']}/{summary['runs']}{spread}"
+
+
+def table(rows, seeds) -> str:
+    """``rows``: (run, first seed's metrics, sweep summary) per row."""
+    seed_text = f'{seeds[0]}-{seeds[-1]}' if len(seeds) > 1 else str(seeds[0])
+    lines = [f'| scenario | spun | beta RMS err [deg] | max abs e_y after entry / in steady parts [m] | '
+             f'laps held | left-right flip [s] | NMPC vs driver steer max [deg] | safe stop | '
+             f'solve p50 / p99 [ms] | RTF | held, seeds {seed_text} (max abs e_y min / median / '
+             f'max [m]) | paper |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for (label, _, _, paper), m, summary in rows:
         if 'error' in m:
-            lines.append(f'| {label} | error: {m["error"]} | | | | | | | | {paper} |')
+            lines.append(f'| {label} | error: {m["error"]} | | | | | | | | | | {paper} |')
             continue
         spun = 'yes (%.1f s)' % m['spin_time_s'] if m.get('spun') else 'no'
         safe = m.get('supervisor_trip_s')
@@ -73,13 +91,16 @@ def table(rows) -> str:
             f"{_fmt(m.get('steer_proposal_diff_max_deg'), '.1f')} | "
             f"{'at %.1f s' % safe if safe is not None else '-'} | "
             f"{_fmt(m.get('solve_time_ms_p50'), '.2f')} / {_fmt(m.get('solve_time_ms_p99'), '.2f')} | "
-            f"{_fmt(m.get('real_time_factor'), '.1f')} | {paper} |")
+            f"{_fmt(m.get('real_time_factor'), '.1f')} | {_held(summary)} | {paper} |")
     return '\n'.join(lines)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--jobs', type=int, default=2)
+    parser.add_argument('--seeds', default='0-9',
+                        help='seeds of every row, e.g. 0-9 (default) or 0; the first one fills '
+                        'the metric columns')
     parser.add_argument('--only', help='comma-separated row labels or scenario names')
     parser.add_argument('--no-readme', action='store_true', help='only docs/results.md')
     parser.add_argument('--json', help='also write all metrics here')
@@ -88,27 +109,41 @@ def main(argv=None) -> int:
     if args.only:
         wanted = set(args.only.split(','))
         runs = [r for r in RUNS if r[0] in wanted or r[1] in wanted]
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as err:
+        parser.error(str(err))
+    jobs = [(label, scenario, overrides, seed) for label, scenario, overrides, _ in runs
+            for seed in seeds]
     t0 = time.perf_counter()
     if args.jobs > 1:
         with multiprocessing.get_context('spawn').Pool(args.jobs) as pool:
-            results = pool.map(_run, runs)
+            results = pool.map(_run, jobs)
     else:
-        results = [_run(r) for r in runs]
+        results = [_run(j) for j in jobs]
     wall = time.perf_counter() - t0
-    for label, m, secs in results:
-        print(f'{label:32s} {secs:6.1f} s  ' + ('ERROR ' + m['error'] if 'error' in m else
-              f"spun={m['spun']} beta_rms={_fmt(m['beta_rms_error_deg'], '.2f')} "
+    for label, seed, m, secs in results:
+        print(f'{label:32s} seed {seed:3d} {secs:6.1f} s  ' + (
+              'ERROR ' + m['error'] if 'error' in m else
+              f"{outcome(m):7s} beta_rms={_fmt(m['beta_rms_error_deg'], '.2f')} "
               f"e_y_max={_fmt(m['max_abs_e_y_m'], '.2f')}"))
+    rows, all_metrics = [], {}
+    for run in runs:
+        mine = [(seed, m) for label, seed, m, _ in results if label == run[0]]
+        rows.append((run, mine[0][1], summarise(mine)))
+        all_metrics[run[0]] = {str(seed): m for seed, m in mine}
     robust = ', '.join(ROBUST)
-    text = (f'{table(list(zip(runs, results)))}\n\n'
-            f'Measured by `scripts/results_table.py` in one run ({wall:.0f} s wall on '
-            f'{args.jobs} process(es)); plant = `drift_sim` double-track model, controller = '
-            f'single-track NMPC (model mismatch by design). Robustness rows: {robust}.\n')
+    text = (f'{table(rows, seeds)}\n\n'
+            f'Measured by `scripts/results_table.py` in one run ({len(jobs)} runs, {wall:.0f} s '
+            f'wall on {args.jobs} process(es)); plant = `drift_sim` double-track model, '
+            f'controller = single-track NMPC (model mismatch by design). The metric columns are '
+            f'seed {seeds[0]}; "held" counts the seeds that neither spun, tripped the supervisor '
+            f'nor lost the drift (sideslip RMS error > {LOST_BETA_RMS_DEG:g} deg or lateral '
+            f'error > {LOST_E_Y_M:g} m). Robustness rows: {robust}.\n')
     (ROOT / 'docs').mkdir(exist_ok=True)
     (ROOT / 'docs' / 'results.md').write_text('# Closed-loop results\n\n' + text)
     if args.json:
-        Path(args.json).write_text(json.dumps({label: m for label, m, _ in results}, indent=2,
-                                              default=str))
+        Path(args.json).write_text(json.dumps(all_metrics, indent=2, default=str))
     if not args.no_readme:
         readme = (ROOT / 'README.md').read_text()
         if START in readme and END in readme:
@@ -118,7 +153,7 @@ def main(argv=None) -> int:
         else:
             print('README.md has no results markers; wrote docs/results.md only', file=sys.stderr)
     print(f'wrote docs/results.md ({wall:.0f} s)')
-    return 0 if all('error' not in m for _, m, _ in results) else 1
+    return 0 if all('error' not in m for _, _, m, _ in results) else 1
 
 
 if __name__ == '__main__':

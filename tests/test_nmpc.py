@@ -141,6 +141,29 @@ def test_model_error_is_learnt_only_in_a_steady_drift(nmpc, plant, eq30):
     assert np.abs(nmpc.model_error).max() < 0.2 * learnt
 
 
+def test_a_slow_car_is_not_braked_further_in_a_drift(vp, params, eq30):
+    """Below brake_speed_ratio[0] of the reference speed the plan has no braking torque; at the
+    reference speed, while blending left and right, or with a driver steering, the full bound."""
+    ctrl = Nmpc(vp, dataclasses.replace(params, brake_speed_ratio=(0.6, 0.75)))
+    slow = np.array(perturbed_start(eq30))
+    slow[0], slow[3], slow[4] = 0.5 * eq30.V, 0.5 * eq30.omega_F, 0.5 * eq30.omega_R
+    # a reference asking for braking torque: the guard, not the cost, keeps the plan >= 0
+    drift = Reference(0.0, dataclasses.replace(eq30, T_R=ctrl.bounds.T_R_min), Direction.LEFT)
+    assert ctrl._braking_bound(slow[0], drift) == 0.0
+    assert ctrl._braking_bound(0.675 * eq30.V, drift) == pytest.approx(0.5 * ctrl.bounds.T_R_min)
+    assert ctrl._braking_bound(eq30.V, drift) == ctrl.bounds.T_R_min
+    assert ctrl._braking_bound(slow[0], Reference(0.0, drift.target, Direction.NONE)) is None
+    res = ctrl.step(measure(slow, 0.0), drift, 0.0)
+    assert res.status == NmpcStatus.OK
+    assert res.predicted_inputs[:, 1].min() >= -1e-6
+    off = Nmpc(vp, dataclasses.replace(params, brake_speed_ratio=(0.0, 0.0)))
+    assert off._braking_bound(slow[0], drift) is None
+    torque_only = Nmpc(vp, dataclasses.replace(params, brake_speed_ratio=(0.6, 0.75)),
+                       mode=Mode.TORQUE_ONLY)
+    assert torque_only._braking_bound(slow[0], drift) is None
+    assert off.step(measure(slow, 0.0), drift, 0.0).predicted_inputs[:, 1].min() < -100.0
+
+
 def test_paper_formulation_converges_too(vp, params, plant, eq30):
     """No model-error estimate, ideal actuator (the paper's NMPC): converges, with an offset."""
     paper = dataclasses.replace(params, disturbance_gain=0.0, torque_lag=0.0,

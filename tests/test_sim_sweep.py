@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from drift_sim.sweep import (ERROR, HELD, SPUN, TRIPPED, format_summary, outcome, parse_seeds,
+from drift_sim.sweep import (ERROR, HELD, LOST, SPUN, TRIPPED, format_summary, outcome, parse_seeds,
                              summarise)
 
 SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'seed_sweep.py'
@@ -31,6 +31,14 @@ def test_a_spin_counts_before_a_trip_and_an_error_before_both():
     assert outcome({'error': 'ParamError: x'}) == ERROR
 
 
+def test_a_run_far_off_its_reference_or_path_is_lost_not_held():
+    assert outcome(_held(4.9, 1.9)) == HELD
+    assert outcome(_held(24.4, 10.4)) == LOST
+    assert outcome(_held(0.3, 2.5)) == LOST
+    assert outcome(_held(7.3, 0.97)) == LOST
+    assert outcome(_held(None, None)) == HELD   # too short a run for the windows
+
+
 def test_summary_spreads_only_over_held_runs():
     runs = [(0, _held(0.8, 0.2)), (1, _held(1.2, 0.3)), (2, _held(1.0, 0.25)),
             (3, {'spun': True, 'spin_time_s': 6.5, 'supervisor_trip_s': 6.1,
@@ -47,10 +55,12 @@ def test_summary_spreads_only_over_held_runs():
 
 def test_expected_spin_scenarios_count_a_stop_as_expected_and_an_error_never():
     stop = {'spun': False, 'supervisor_trip_s': 4.1, 'expect_spin': True}
-    kept_going = dict(_held(30.0), expect_spin=True)
-    s = summarise([(0, stop), (1, kept_going), (2, {'error': 'RuntimeError: solver'})])
-    assert (s['held'], s['as_expected']) == (1, 1)
-    assert [f['outcome'] for f in s['not_held']] == [TRIPPED, ERROR]
+    kept_going = dict(_held(0.5), expect_spin=True)
+    left_the_path = dict(_held(30.0), expect_spin=True)
+    s = summarise([(0, stop), (1, kept_going), (2, left_the_path),
+                   (3, {'error': 'RuntimeError: solver'})])
+    assert (s['held'], s['as_expected']) == (1, 2)
+    assert [f['outcome'] for f in s['not_held']] == [TRIPPED, LOST, ERROR]
 
 
 def _script():

@@ -174,7 +174,7 @@ class Nmpc:
         self._T_act = x_init[S_T_ACT]
         self._update_disturbance(x_init, ref)
         p = ocp.pack_params(reference_rows(ref, N), self.mu, self._d * _side_sign(ref))
-        lbw, ubw = ocp.bounds_for(x_init, self._hold)
+        lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
         else:
@@ -199,6 +199,25 @@ class Nmpc:
                           X_pred[:, :NXO], U_pred, str(out.status))
 
     # --- warm start and failures -----------------------------------------------------------
+    def _braking_bound(self, V: float, ref: Reference) -> float | None:
+        """Lower torque bound that keeps a slow car from braking itself to a stop.
+
+        In the grip-to-drift entry the OCP can hold the sideslip ramp with engine braking (the
+        braked rear axle loses lateral grip) instead of power: within its 0.5 s horizon that
+        tracks beta and r, but the car loses speed the whole time, reaches walking pace and
+        spins (the entry's most common failure over seeds). Below ``brake_speed_ratio[0]`` of
+        the reference speed no braking torque is allowed, above ``[1]`` the full bound, linear
+        in between. Not while blending left and right: the blended speed is no equilibrium's.
+        Not in TORQUE_ONLY: there the driver's steering decides the entry, and with the guard
+        two of ten semi-automated wet entries spun that held without it (scripts/seed_sweep.py).
+        """
+        low, high = self.params.brake_speed_ratio
+        if (high <= 0.0 or self.mode != Mode.FULL or ref.direction == Direction.NONE
+                or not ref.target.V > 0.0):
+            return None
+        share = (V / ref.target.V - low) / max(high - low, 1e-9)
+        return min(1.0, max(0.0, share)) * self.bounds.T_R_min
+
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
         """Hold the initial state over the horizon, inputs at the reference torque."""
         N = self.params.N

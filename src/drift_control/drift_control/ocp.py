@@ -117,6 +117,8 @@ class NmpcParams:
     disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per stage
     disturbance_beta_band: float = 0.05   # learn d only within this of the beta reference [rad]
     disturbance_min_beta: float = 0.2     # ... of a drift reference (|beta_ref| above) [rad]
+    brake_speed_ratio: tuple[float, float] = (0.0, 0.0)   # V / V_ref: no braking torque below
+                                    # the first, the full braking bound above the second (off: 0)
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
@@ -129,6 +131,9 @@ class NmpcParams:
         require(0 <= self.torque_only_hold_stages < self.N, 'nmpc.torque_only_hold_stages',
                 'must be in [0, N)')
         require(self.torque_lag >= 0, 'nmpc.torque_lag', 'must be >= 0')
+        low, high = self.brake_speed_ratio if len(self.brake_speed_ratio) == 2 else (-1, -1)
+        require(0 <= low <= high, 'nmpc.brake_speed_ratio',
+                'must be [low, high] with 0 <= low <= high ([0, 0]: off)')
         require(0 <= self.disturbance_gain <= 1, 'nmpc.disturbance_gain', 'must be in [0, 1]')
         require(len(self.disturbance_max) == NXO and min(self.disturbance_max) >= 0,
                 'nmpc.disturbance_max', f'must be {NXO} values >= 0 (V .. delta)')
@@ -287,12 +292,16 @@ class Ocp:
         d = np.zeros(NXO) if d is None else np.asarray(d, dtype=float)
         return np.concatenate([refs.ravel(), [mu], d])
 
-    def bounds_for(self, x_init, hold_stages: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def bounds_for(self, x_init, hold_stages: int = 0,
+                   T_R_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (all NS); delta, delta_dot, T_R limited.
 
-        ``hold_stages`` first stages get ``delta_dot = 0`` (a driver who holds the wheel).
+        ``hold_stages`` first stages get ``delta_dot = 0`` (a driver who holds the wheel);
+        ``T_R_min`` raises the lower torque bound of every stage (never above ``T_R_max``).
         """
         b = self.bounds
+        if T_R_min is not None:
+            b = b._replace(T_R_min=min(max(b.T_R_min, T_R_min), b.T_R_max))
         lb, ub = np.full(self.nw, -np.inf), np.full(self.nw, np.inf)
         nz = NS + NU
         for k in range(self.N + 1):

@@ -11,7 +11,11 @@ from __future__ import annotations
 import math
 import statistics
 
-HELD, SPUN, TRIPPED, ERROR = 'held', 'spun', 'tripped', 'error'
+HELD, LOST, SPUN, TRIPPED, ERROR = 'held', 'lost', 'spun', 'tripped', 'error'
+# a run that neither spun nor tripped but is this far off its sideslip reference (RMS in the
+# steady windows) or its path did not hold the drift either
+LOST_BETA_RMS_DEG = 2.0
+LOST_E_Y_M = 5.0
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -35,14 +39,18 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def outcome(metrics: dict) -> str:
-    """How one run ended: an error, a spin, a supervisor trip (the stack stopped pressing on) or
-    the drift held to the end."""
+    """How one run ended: an error, a spin, a supervisor trip (the stack stopped pressing on),
+    lost (no spin, but the sideslip RMS error or the lateral error beyond ``LOST_*``) or the
+    drift held to the end."""
     if 'error' in metrics:
         return ERROR
     if metrics.get('spun'):
         return SPUN
     if metrics.get('supervisor_trip_s') is not None:
         return TRIPPED
+    beta, e_y = metrics.get('beta_rms_error_deg'), metrics.get('max_abs_e_y_m')
+    if not (beta is None or beta <= LOST_BETA_RMS_DEG) or not (e_y is None or e_y <= LOST_E_Y_M):
+        return LOST
     return HELD
 
 
@@ -57,13 +65,13 @@ def summarise(runs: list[tuple[int, dict]]) -> dict:
     """Summary of ``(seed, metrics)`` runs of one scenario and variant.
 
     ``held`` counts runs that held the drift to the end; ``as_expected`` counts runs that ended
-    as the scenario says the paper's did (a held drift, or for ``expect_spin`` scenarios a spin
-    or a supervisor trip). The spreads are over the held runs only: the lateral error of a car
+    as the scenario says the paper's did (a held drift, or for ``expect_spin`` scenarios a spin,
+    a supervisor trip or a lost drift). The spreads are over the held runs only: the lateral error of a car
     that spun says nothing about tracking.
     """
     held = [(seed, m) for seed, m in runs if outcome(m) == HELD]
     expected = sum(1 for _, m in runs if outcome(m) != ERROR
-                   and (outcome(m) in (SPUN, TRIPPED)) == bool(m.get('expect_spin')))
+                   and (outcome(m) != HELD) == bool(m.get('expect_spin')))
     failures = [{'seed': seed, 'outcome': outcome(m),
                  'time_s': m.get('spin_time_s') if outcome(m) == SPUN
                  else m.get('supervisor_trip_s'), 'error': m.get('error')}
@@ -95,5 +103,5 @@ def format_summary(name: str, summary: dict) -> str:
                                                         else ''))
 
 
-__all__ = ['ERROR', 'HELD', 'SPUN', 'TRIPPED', 'format_summary', 'outcome', 'parse_seeds',
+__all__ = ['ERROR', 'HELD', 'LOST', 'SPUN', 'TRIPPED', 'format_summary', 'outcome', 'parse_seeds',
            'summarise']

@@ -1,0 +1,43 @@
+"""scripts/results_table.py: a row per scenario with its first seed's metrics and its seed count."""
+import importlib.util
+from pathlib import Path
+
+from drift_sim.sweep import summarise
+
+SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'results_table.py'
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location('results_table', SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(e_y, spun=False):
+    return {'spun': spun, 'spin_time_s': 7.2 if spun else None, 'supervisor_trip_s': None,
+            'beta_rms_error_deg': 0.25, 'max_abs_e_y_m': e_y, 'max_abs_e_y_steady_m': e_y,
+            'transition_time_s': 0.8, 'solve_time_ms_p50': 1.1, 'solve_time_ms_p99': 1.5,
+            'real_time_factor': 6.0}
+
+
+def test_a_row_shows_seed_zero_and_how_many_seeds_held():
+    rt = _script()
+    runs = [(0, _run(1.08)), (1, _run(0.8)), (2, _run(30.0, spun=True))]
+    row = (('alternating_dry', 'alternating_dry', (), 'max lateral deviation 1 m'),
+           runs[0][1], summarise(runs))
+    text = rt.table([row], [0, 1, 2])
+    header, _, line = text.splitlines()
+    assert 'held, seeds 0-2' in header
+    assert header.count('|') == line.count('|')
+    cells = [c.strip() for c in line.split('|')[1:-1]]
+    assert cells[0] == 'alternating_dry' and cells[1] == 'no' and cells[3] == '1.08 / 1.08'
+    assert cells[-2] == '2/3 (0.80 / 0.94 / 1.08)' and cells[-1] == 'max lateral deviation 1 m'
+
+
+def test_an_error_row_keeps_the_columns():
+    rt = _script()
+    row = (('steady_dry', 'steady_dry', (), '-'), {'error': 'ParamError: x'},
+           summarise([(0, {'error': 'ParamError: x'})]))
+    header, _, line = rt.table([row], [0]).splitlines()
+    assert header.count('|') == line.count('|') and 'error: ParamError: x' in line
