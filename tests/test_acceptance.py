@@ -12,7 +12,10 @@ from drift_sim.closed_loop import run_closed_loop
 
 pytestmark = pytest.mark.slow
 
+# friction 5 % below / above the map's (on top of the +-0.05 friction field), mass +10 %,
+# torque transport delay +20 ms
 ROBUST = ('surface.mu=0.95', 'plant.body.m=2013.0', 'plant.powertrain.delay=0.05')
+ROBUST_HIGH_MU = ('surface.mu=1.05',) + ROBUST[1:]
 _cache = {}
 
 
@@ -42,25 +45,29 @@ def test_30_deg_held_for_three_laps_on_dry_and_wet(scenario, e_y_max):
 def test_alternating_left_then_right_drift():
     m, trace = run('alternating_dry')
     held(m)
-    # the paper's figure: max lateral deviation 1 m after the entry. Measured 1.03-1.31 m over
-    # seeds 0-4, the maximum just after the flip (before the course-consistent yaw reference
-    # and the path-side flip: 4.4 m)
+    # the paper's figure: max lateral deviation 1 m after the entry. Measured 1.08 m here (seed
+    # 0), 0.74 / 0.87 / 1.32 m min / median / max over the 9 of seeds 0-9 that hold, the
+    # maximum just after the flip (before the course-consistent yaw reference and the path-side
+    # flip: 4.4 m)
     assert m['max_abs_e_y_m'] < 1.5
     assert m['transition_time_s'] < 2.0        # |beta| > 20 deg left to > 20 deg right
     beta = np.degrees(trace['beta'])
     assert beta.min() < -25.0 and beta.max() > 25.0, 'both drifts reached'
 
 
-def test_held_drift_robust_to_friction_mass_and_actuator_delay():
-    m, _ = run('steady_dry', *ROBUST)
+@pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_HIGH_MU], ids=['mu-5%', 'mu+5%'])
+def test_held_drift_robust_to_friction_mass_and_actuator_delay(perturbation):
+    # measured max |e_y| 0.08 m (mu -5 %) and 0.12 m (mu +5 %); 10/10 seeds hold either way
+    m, _ = run('steady_dry', *perturbation)
     held(m, laps=3.0)
     assert m['max_abs_e_y_m'] < 1.5
 
 
-def test_alternating_robust_to_friction_mass_and_actuator_delay():
-    # measured max |e_y| after the entry 3.31 m (seed 0); seeds 1-2: 1.19, 0.95 m; seed 3 spins
-    # out of the flip (README: known limitations)
-    m, _ = run('alternating_dry', *ROBUST)
+@pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_HIGH_MU], ids=['mu-5%', 'mu+5%'])
+def test_alternating_robust_to_friction_mass_and_actuator_delay(perturbation):
+    # measured max |e_y| after the entry 3.31 m (mu -5 %) and 1.40 m (mu +5 %) on seed 0; over
+    # seeds 0-9 7/10 and 6/10 hold (README: known limitations, perturbed runs)
+    m, _ = run('alternating_dry', *perturbation)
     held(m)
     assert m['max_abs_e_y_m'] < 4.0
     assert m['transition_time_s'] < 2.0

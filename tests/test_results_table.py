@@ -41,3 +41,9 @@ def test_an_error_row_keeps_the_columns():
            summarise([(0, {'error': 'ParamError: x'})]))
     header, _, line = rt.table([row], [0]).splitlines()
     assert header.count('|') == line.count('|') and 'error: ParamError: x' in line
+
+
+def test_a_paper_spin_row_says_how_many_runs_left_the_drift():
+    rt = _script()
+    trip = {'spun': False, 'supervisor_trip_s': 4.1, 'expect_spin': True}
+    assert rt._held(summarise([(0, trip), (1, trip)])) == '0/2; left the drift as in the paper 2/2'

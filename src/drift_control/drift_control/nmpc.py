@@ -209,7 +209,8 @@ class Nmpc:
         the reference speed no braking torque is allowed, above ``[1]`` the full bound, linear
         in between. Not while blending left and right: the blended speed is no equilibrium's.
         Not in TORQUE_ONLY: there the driver's steering decides the entry, and with the guard
-        two of ten semi-automated wet entries spun that held without it (scripts/seed_sweep.py).
+        (at [0.6, 0.75]) two of ten semi-automated wet entries spun that held without it
+        (scripts/seed_sweep.py, seeds 0-9).
         """
         low, high = self.params.brake_speed_ratio
         if (high <= 0.0 or self.mode != Mode.FULL or ref.direction == Direction.NONE
