@@ -14,6 +14,16 @@ REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / 'tests'
 PYTHON = sys.executable
 
+
+
+def load_script(name: str):
+    """``scripts/<name>.py`` imported as a module, so a test can call its ``main(argv)``."""
+    spec = importlib.util.spec_from_file_location(name, REPO / 'scripts' / f'{name}.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 # Domain ids 10..29 belong to the drift_tools / drift_msgs tests; each ros test gets the next one.
 _TOOLS_DOMAINS = itertools.cycle(range(10, 30))
 

@@ -1,5 +1,4 @@
 """Equilibrium map: committed maps are equilibria, lookup is smooth, clamped, mirrored, fast."""
-import importlib.util
 import json
 import logging
 import time
@@ -12,6 +11,8 @@ from drift_control.equilibrium import scaled_derivative, solve_equilibrium
 from drift_control.eqmap import (KINDS, GridParams, MapError, MapParams, build_map, fill_holes,
                                  load_map, load_map_params, save_map)
 from drift_control.params import ParamError, Surface, load_surface, load_vehicle
+
+from conftest import load_script
 from drift_control.signals import Direction, Equilibrium
 from drift_control.vehicle import VehicleModel
 
@@ -255,9 +256,7 @@ def test_map_config_loads_and_rejects_unknown_keys(tmp_path):
 
 
 def test_build_script_writes_both_files(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location('build_maps', ROOT / 'scripts' / 'build_maps.py')
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script('build_maps')
     assert script.main(['--surface', 'wet', '--beta-deg', '26:30:2', '--radius', '14:16:2',
                         '--jobs', '2', '--out', str(tmp_path)]) == 0
     assert 'converged' in capsys.readouterr().out

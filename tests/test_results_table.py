@@ -1,17 +1,8 @@
 """scripts/results_table.py: a row per scenario with its first seed's metrics and its seed count."""
-import importlib.util
-from pathlib import Path
 
 from drift_sim.sweep import summarise
 
-SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'results_table.py'
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location('results_table', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_script
 
 
 def _run(e_y, spun=False):
@@ -22,7 +13,7 @@ def _run(e_y, spun=False):
 
 
 def test_a_row_shows_seed_zero_and_how_many_seeds_held():
-    rt = _script()
+    rt = load_script('results_table')
     runs = [(0, _run(1.08)), (1, _run(0.8)), (2, _run(30.0, spun=True))]
     row = (('alternating_dry', 'alternating_dry', (), 'max lateral deviation 1 m'),
            runs[0][1], summarise(runs))
@@ -36,7 +27,7 @@ def test_a_row_shows_seed_zero_and_how_many_seeds_held():
 
 
 def test_an_error_row_keeps_the_columns():
-    rt = _script()
+    rt = load_script('results_table')
     row = (('steady_dry', 'steady_dry', (), '-'), {'error': 'ParamError: x'},
            summarise([(0, {'error': 'ParamError: x'})]))
     header, _, line = rt.table([row], [0]).splitlines()
@@ -44,6 +35,6 @@ def test_an_error_row_keeps_the_columns():
 
 
 def test_a_paper_spin_row_says_how_many_runs_left_the_drift():
-    rt = _script()
+    rt = load_script('results_table')
     trip = {'spun': False, 'supervisor_trip_s': 4.1, 'expect_spin': True}
     assert rt._held(summarise([(0, trip), (1, trip)])) == '0/2; left the drift as in the paper 2/2'

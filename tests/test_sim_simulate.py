@@ -1,27 +1,19 @@
 """scripts/simulate.py end to end: the one-process closed loop runs and reports its metrics."""
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'simulate.py'
-
-
-def _simulate():
-    spec = importlib.util.spec_from_file_location('simulate', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_script
 
 
 @pytest.mark.slow
 def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path):
     pytest.importorskip('drift_control.nmpc')
     out = tmp_path / 'metrics.json'
-    rc = _simulate().main(['--scenario', 'steady_dry', '--set', 'duration=3.0', '--quiet',
-                           '--json', str(out), '--trace', str(tmp_path / 'trace.npz')])
+    rc = load_script('simulate').main(['--scenario', 'steady_dry', '--set', 'duration=3.0',
+                                       '--quiet', '--json', str(out),
+                                       '--trace', str(tmp_path / 'trace.npz')])
     assert rc == 0
     m = json.loads(out.read_text())
     for key in ('beta_rms_error_deg', 'max_abs_e_y_m', 'spun', 'time_in_drift_s',
@@ -33,7 +25,7 @@ def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path):
 
 
 def test_a_wrong_override_is_reported_not_raised(capsys):
-    rc = _simulate().main(['--scenario', 'steady_dry', '--set', 'plant.lsd.lockng=1',
+    rc = load_script('simulate').main(['--scenario', 'steady_dry', '--set', 'plant.lsd.lockng=1',
                            '--controller', 'feedforward', '--quiet'])
     assert rc == 2
     assert 'lockng' in capsys.readouterr().err

@@ -1,14 +1,12 @@
 """Seed sweeps: run classification, summaries, and scripts/seed_sweep.py end to end."""
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
 from drift_sim.sweep import (ERROR, HELD, LOST, SPUN, TRIPPED, format_summary, outcome, parse_seeds,
                              summarise)
 
-SCRIPT = Path(__file__).resolve().parents[1] / 'scripts' / 'seed_sweep.py'
+from conftest import load_script
 
 
 def _held(e_y, beta=0.2):
@@ -63,19 +61,13 @@ def test_expected_spin_scenarios_count_a_stop_as_expected_and_an_error_never():
     assert [f['outcome'] for f in s['not_held']] == [TRIPPED, LOST, ERROR]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location('seed_sweep', SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.slow
 def test_sweep_runs_every_seed_and_writes_the_summary(tmp_path, capsys):
     pytest.importorskip('drift_control.nmpc')
     out = tmp_path / 'sweep.json'
-    rc = _script().main(['--scenario', 'drift_hold_dry', '--seeds', '0-1', '--jobs', '1',
-                         '--set', 'duration=2.0', '--json', str(out)])
+    sweep = load_script('seed_sweep')
+    rc = sweep.main(['--scenario', 'drift_hold_dry', '--seeds', '0-1', '--jobs', '1',
+                     '--set', 'duration=2.0', '--json', str(out)])
     assert rc == 0
     data = json.loads(out.read_text())
     assert [r['seed'] for r in data['runs']] == [0, 1]
@@ -87,5 +79,6 @@ def test_sweep_runs_every_seed_and_writes_the_summary(tmp_path, capsys):
 
 
 def test_a_bad_scenario_is_an_error_row_and_a_failing_exit():
-    rc = _script().main(['--scenario', 'no_such_scenario', '--seeds', '0', '--jobs', '1'])
+    sweep = load_script('seed_sweep')
+    rc = sweep.main(['--scenario', 'no_such_scenario', '--seeds', '0', '--jobs', '1'])
     assert rc == 1
