@@ -208,9 +208,9 @@ class Nmpc:
         spins (the entry's most common failure over seeds). Below ``brake_speed_ratio[0]`` of
         the reference speed no braking torque is allowed, above ``[1]`` the full bound, linear
         in between. Not while blending left and right: the blended speed is no equilibrium's.
-        Not in TORQUE_ONLY: there the driver's steering decides the entry, and with the guard
-        (at [0.6, 0.75]) two of ten semi-automated wet entries spun that held without it
-        (scripts/seed_sweep.py, seeds 0-9).
+        Not in TORQUE_ONLY: there the driver's steering decides the entry, and the guard did not
+        help (seeds 0-9, scripts/seed_sweep.py: at [0.45, 0.6] as many semi-automated entries
+        held, 7 dry and 9 wet, other seeds failing; at [0.6, 0.75] two wet entries fewer).
         """
         low, high = self.params.brake_speed_ratio
         if (high <= 0.0 or self.mode != Mode.FULL or ref.direction == Direction.NONE
