@@ -198,7 +198,6 @@ class Nmpc:
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
 
-    # --- warm start and failures -----------------------------------------------------------
     def _braking_bound(self, V: float, ref: Reference) -> float | None:
         """Lower torque bound that keeps a slow car from braking itself to a stop.
 
@@ -219,6 +218,7 @@ class Nmpc:
         share = (V / ref.target.V - low) / max(high - low, 1e-9)
         return min(1.0, max(0.0, share)) * self.bounds.T_R_min
 
+    # --- warm start and failures -----------------------------------------------------------
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
         """Hold the initial state over the horizon, inputs at the reference torque."""
         N = self.params.N
