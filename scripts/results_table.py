@@ -20,7 +20,8 @@ import sys
 import time
 from pathlib import Path
 
-from drift_sim.sweep import LOST_BETA_RMS_DEG, LOST_E_Y_M, outcome, parse_seeds, summarise
+from drift_sim.sweep import (LOST_BETA_RMS_DEG, LOST_E_Y_M, outcome, parse_seeds, run_seed,
+                             summarise)
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = '<!-- results:start -->', '<!-- results:end -->'
@@ -47,15 +48,8 @@ RUNS = [
 
 def _run(job):
     label, scenario, overrides, seed = job
-    import logging
-    from drift_sim.closed_loop import run_closed_loop
-    logging.disable(logging.ERROR)   # supervisor trips: the table says them
-    t0 = time.perf_counter()
-    try:
-        metrics, _ = run_closed_loop(scenario, overrides, seed=seed)
-    except Exception as err:   # noqa: BLE001 - one bad row must not lose the others
-        return label, seed, {'error': f'{type(err).__name__}: {err}'}, time.perf_counter() - t0
-    return label, seed, metrics, time.perf_counter() - t0
+    metrics, secs = run_seed(scenario, overrides, seed)
+    return label, seed, metrics, secs
 
 
 def _fmt(value, spec):

@@ -15,30 +15,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
-import math
 import multiprocessing
 import sys
 import time
 
-from drift_control.params import ParamError, config_dir
-from drift_sim.sweep import format_summary, outcome, parse_seeds, summarise
+from drift_control.params import config_dir
+from drift_sim.sweep import format_summary, outcome, parse_seeds, run_seed, summarise
 
 
 def _run(job):
     scenario, overrides, seed, config = job
-    from drift_sim.closed_loop import run_closed_loop
-    logging.disable(logging.ERROR)   # the supervisor's trip messages: the outcome says it
-    t0 = time.perf_counter()
-    try:
-        metrics, _ = run_closed_loop(scenario, overrides, seed=seed, config=config)
-    except ParamError as err:
-        metrics = {'error': f'ParamError: {err}'}
-    except Exception as err:   # noqa: BLE001 - one broken run must not lose the others
-        metrics = {'error': f'{type(err).__name__}: {err}'}
-    metrics = {k: None if isinstance(v, float) and not math.isfinite(v) else v
-               for k, v in metrics.items()}   # JSON has no NaN
-    return scenario, seed, metrics, time.perf_counter() - t0
+    metrics, secs = run_seed(scenario, overrides, seed, config)
+    return scenario, seed, metrics, secs
 
 
 def _fmt(value, spec='.2f'):

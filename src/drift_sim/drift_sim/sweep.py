@@ -8,8 +8,10 @@ this module classifies and summarises the runs. Pure Python on the metric dicts 
 """
 from __future__ import annotations
 
+import logging
 import math
 import statistics
+import time
 
 HELD, LOST, SPUN, TRIPPED, ERROR = 'held', 'lost', 'spun', 'tripped', 'error'
 # a run that neither spun nor tripped but is this far off its sideslip reference (RMS in the
@@ -36,6 +38,26 @@ def parse_seeds(text: str) -> list[int]:
     if not seeds:
         raise ValueError('seeds: none given')
     return sorted(seeds)
+
+
+def run_seed(scenario: str, overrides=(), seed: int | None = None,
+             config: str | None = None) -> tuple[dict, float]:
+    """One ``run_closed_loop`` for a sweep: (metrics, wall seconds).
+
+    An exception becomes ``{'error': ...}`` (one broken run must not lose the others) and NaN
+    becomes None (JSON has none). The supervisor's trip messages are silenced: the outcome says
+    them. Meant for worker processes; it imports the closed loop on first use.
+    """
+    from drift_sim.closed_loop import run_closed_loop
+    logging.disable(logging.ERROR)
+    t0 = time.perf_counter()
+    try:
+        metrics, _ = run_closed_loop(scenario, overrides, seed=seed, config=config)
+    except Exception as err:   # noqa: BLE001
+        metrics = {'error': f'{type(err).__name__}: {err}'}
+    metrics = {k: None if isinstance(v, float) and not math.isfinite(v) else v
+               for k, v in metrics.items()}
+    return metrics, time.perf_counter() - t0
 
 
 def outcome(metrics: dict) -> str:
@@ -104,4 +126,4 @@ def format_summary(name: str, summary: dict) -> str:
 
 
 __all__ = ['ERROR', 'HELD', 'LOST', 'SPUN', 'TRIPPED', 'format_summary', 'outcome', 'parse_seeds',
-           'summarise']
+           'run_seed', 'summarise']
