@@ -29,3 +29,12 @@ def test_an_interrupt_surfacing_as_another_error_ends_the_run_cleanly(node_env):
     proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
                            'interrupt'], env=node_env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_an_error_just_before_the_shutdown_lands_ends_the_run_cleanly(node_env):
+    """rclpy's SIGINT handler shuts the context down from its own thread: a take can fail
+    ("Unable to convert call argument") while the context is still up and failed a lock-step
+    run at its end in CI."""
+    proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
+                           'early'], env=node_env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]

@@ -2,8 +2,10 @@
 arriving while a callback runs, made deterministic. ``run_node`` must end it with exit code 0.
 With the argument ``fail`` the callback raises while the context is up: that must fail the run;
 with ``interrupt`` it raises what a SIGINT inside a C extension becomes (an error caused by a
-KeyboardInterrupt): a clean end again."""
+KeyboardInterrupt): a clean end again; with ``early`` it raises first and the context goes down
+50 ms later from another thread, as rclpy's signal-handler thread does it: a clean end too."""
 import sys
+import threading
 
 import rclpy
 from rclpy.node import Node
@@ -21,6 +23,9 @@ class PublishAfterShutdown(Node):
     def _tick(self):
         if 'fail' in sys.argv[1:]:
             raise ValueError('a real failure while running')
+        if 'early' in sys.argv[1:]:
+            threading.Timer(0.05, rclpy.shutdown).start()
+            raise RuntimeError('Unable to convert call argument')
         if 'interrupt' in sys.argv[1:]:
             try:
                 raise KeyboardInterrupt

@@ -1,6 +1,7 @@
 """How every node process runs: init, spin, a clean end on SIGINT, cleanup and an exit code."""
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 import rclpy
@@ -8,6 +9,10 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from drift_control.params import ParamError
+
+# rclpy's SIGINT handler shuts the context down from its own thread, so an error the interrupt
+# caused in the executor can come before the context is down: wait this long for it [s]
+SHUTDOWN_GRACE_S = 0.5
 
 
 def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
@@ -19,8 +24,10 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     publish, ``RuntimeError`` "Unable to convert call argument" on a take; each failed a
     lock-step run at its end in CI). The interrupt itself may surface inside a C extension
     as another error (``SystemError`` from casadi's ``DM.__array__``, caused by the
-    ``KeyboardInterrupt``). An exception once the context is shut down, or caused by the
-    interrupt, is the end of the run, not a failure; any other is raised. The node's ``close()``, if it
+    ``KeyboardInterrupt``). The handler shuts the context down from its own thread, so such an
+    error can also come just before the shutdown lands (a take failed that way). An exception
+    caused by the interrupt, or followed by the shutdown within ``SHUTDOWN_GRACE_S``, is the end
+    of the run, not a failure; any other is raised (that much later). The node's ``close()``, if it
     has one, runs before the node is destroyed (flush a bag, release a CAN bus).
     """
     rclpy.init(args=args)
@@ -34,8 +41,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as err:
-        if rclpy.ok() and not _interrupted(err):   # a real failure while running
-            raise
+        if not (_interrupted(err) or _shut_down_within(SHUTDOWN_GRACE_S)):
+            raise   # a real failure while running
     finally:
         if node is not None:
             close = getattr(node, 'close', None)
@@ -55,3 +62,13 @@ def _interrupted(err: BaseException | None) -> bool:
         seen.add(id(err))
         err = err.__cause__ or err.__context__
     return False
+
+
+def _shut_down_within(seconds: float) -> bool:
+    """Whether the default context is, or goes, down within ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while rclpy.ok():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
