@@ -45,11 +45,11 @@ def test_30_deg_held_for_three_laps_on_dry_and_wet(scenario, e_y_max):
 def test_alternating_left_then_right_drift():
     m, trace = run('alternating_dry')
     held(m)
-    # the paper's figure: max lateral deviation 1 m after the entry. Measured 1.08 m here (seed
-    # 0), 0.74 / 0.87 / 1.32 m min / median / max over the 9 of seeds 0-9 that hold, the
-    # maximum just after the flip (before the course-consistent yaw reference and the path-side
+    # the paper's figure: max lateral deviation 1 m after the entry. Over seeds 0-9 all hold,
+    # 0.76 / 0.82 / 0.96 m min / median / max, the maximum ~2 s after the flip (with a 0.5 s
+    # horizon: 9/10, up to 1.35 m; before the course-consistent yaw reference and the path-side
     # flip: 4.4 m)
-    assert m['max_abs_e_y_m'] < 1.5
+    assert m['max_abs_e_y_m'] <= 1.0
     assert m['transition_time_s'] < 2.0        # |beta| > 20 deg left to > 20 deg right
     beta = np.degrees(trace['beta'])
     assert beta.min() < -25.0 and beta.max() > 25.0, 'both drifts reached'
@@ -78,8 +78,8 @@ def test_semi_automated_driver_steers_nmpc_torque_holds_30_deg(scenario):
     m, _ = run(scenario)
     held(m, laps=3.0, beta_rms_max=2.0)
     # the NMPC's own steering stays near the driver's (paper: ~5 deg). Its command is the
-    # measured angle plus one 20 ms stage (within 1.15 deg by construction), so the comparison
-    # that can fail is its plan 0.5 s ahead against the driver's steering
+    # measured angle plus one 20 ms period of steering rate (within 1.15 deg by construction),
+    # so the comparison that can fail is its plan 0.75 s ahead against the driver's steering
     assert m['steer_plan_diff_rms_deg'] < 5.0
 
 

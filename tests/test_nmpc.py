@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from drift_control.equilibrium import solve_equilibrium
-from drift_control.nmpc import Nmpc, NmpcStatus, reference_rows
-from drift_control.ocp import NmpcParams, Ocp, SolverParams, load_nmpc_params
+from drift_control.nmpc import Nmpc, NmpcStatus, _shift_rows, reference_rows
+from drift_control.ocp import NXO, NmpcParams, Ocp, SolverParams, load_nmpc_params
 from drift_control.params import ParamError, load_surface, load_vehicle
 from drift_control.signals import Direction, Equilibrium, Mode, Reference, Validity, VehicleState
 from drift_control.vehicle import VehicleModel
@@ -210,6 +210,93 @@ def test_reference_horizon_per_stage(eq30):
     rows = reference_rows(ref, 25)
     assert rows[0, 1] == eq30.beta and np.all(rows[1:, 1] == -0.3)
     assert np.all(reference_rows(Reference(0.0, eq30), 25)[:, 1] == eq30.beta)
+
+
+# --- stages longer than the control period -------------------------------------------------------
+
+def test_stage_length_is_validated():
+    with pytest.raises(ParamError, match='nmpc.stage_dt'):
+        NmpcParams(Ts=0.02, stage_dt=0.01)
+    assert NmpcParams(Ts=0.02).dt == 0.02 and NmpcParams(Ts=0.02, stage_dt=0.03).dt == 0.03
+
+
+def test_one_stage_is_two_control_periods_of_the_same_model(vp, eq30):
+    """F (a stage) and F_period (a control period) integrate the same model with the same step."""
+    ocp = Ocp(vp, NmpcParams(Ts=0.02, stage_dt=0.04, substeps=4, torque_lag=0.0))
+    x = np.array([*perturbed_start(eq30)[:NXO], eq30.T_R, eq30.T_R])
+    u = np.array([0.3, eq30.T_R + 500.0])
+    stage = np.asarray(ocp.F(x, u, 1.0)).ravel()[:NXO]
+    half = np.asarray(ocp.F_period(x, u, 1.0)).ravel()
+    twice = np.asarray(ocp.F_period(np.concatenate([half, x[NXO:]]), u, 1.0)).ravel()
+    assert np.allclose(stage, twice, rtol=1e-9, atol=1e-9)
+    assert not np.allclose(half, stage, atol=1e-3), 'a period is shorter than a stage'
+
+
+def test_plan_stepped_on_by_a_fraction_of_a_stage():
+    rows = np.arange(8.0).reshape(4, 2)
+    assert np.array_equal(_shift_rows(rows, 0.0), rows)
+    assert np.allclose(_shift_rows(rows, 0.5), [[1, 2], [3, 4], [5, 6], [6, 7]])
+    assert np.allclose(_shift_rows(rows, 1.0), [[2, 3], [4, 5], [6, 7], [6, 7]])
+
+
+def test_command_is_one_control_period_along_a_longer_stage(nmpc, eq30, params):
+    """With 30 ms stages and a 20 ms period the steering command is where the plan's rate takes
+    the wheel in one period, not at the end of the first stage."""
+    assert params.dt > params.Ts, 'config/nmpc.yaml: stages longer than the period'
+    x, now = warm(nmpc, eq30)
+    res = nmpc.step(measure(x, now), Reference(now, eq30, Direction.LEFT), now)
+    assert res.stage_dt == params.dt
+    c = res.command
+    assert c.delta_rate == pytest.approx(res.predicted_inputs[0, 0])
+    assert c.delta == pytest.approx(x[5] + c.delta_rate * params.Ts, abs=1e-9)
+
+
+@pytest.mark.parametrize('stage_dt', [0.02, 0.04])
+def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
+    """A plant that is the OCP's own model plus a yaw-rate offset per 20 ms period: the learnt
+    error is that offset, whatever the stage length (the OCP adds it per stage, scaled)."""
+    p = dataclasses.replace(params, stage_dt=stage_dt, substeps=round(stage_dt / 0.01),
+                            solver=dataclasses.replace(params.solver, codegen=False))
+    ctrl = Nmpc(vp, p)
+    offset = np.zeros(NXO)
+    offset[2] = 0.002   # [rad/s] per period, under disturbance_max
+    x = np.array([eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta])
+    T_act = eq30.T_R
+    for k in range(150):
+        now = k * p.Ts
+        state = measure(np.concatenate([x, [0.0] * 3]), now, drive_torque=T_act)
+        res = ctrl.step(state, Reference(now, eq30, Direction.LEFT), now)
+        assert res.status == NmpcStatus.OK
+        u = [res.command.delta_rate, res.command.drive_torque]
+        x = np.asarray(ctrl.ocp.F_period([*x, T_act, T_act], u, 1.0)).ravel() + offset
+        T_act += (1.0 - math.exp(-p.Ts / p.torque_lag)) * (res.command.drive_torque - T_act)
+    assert ctrl.model_error[2] == pytest.approx(0.002, rel=0.1)
+
+
+def test_warm_start_previous_or_shifted(vp, params, eq30, monkeypatch):
+    """'previous' starts each step from the last solution as it was, 'shifted' from it moved on
+    by one control period (Ts / stage_dt of a stage)."""
+    for mode in ('previous', 'shifted'):
+        ctrl = Nmpc(vp, dataclasses.replace(
+            params, solver=dataclasses.replace(params.solver, warm_start=mode, codegen=False)))
+        x, now = warm(ctrl, eq30)
+        last = ctrl._w.copy()
+        seen = []
+        solve = ctrl._solver.solve
+        monkeypatch.setattr(ctrl._solver, 'solve', lambda w0, *a: seen.append(w0) or solve(w0, *a))
+        ctrl.step(measure(x, now), Reference(now, eq30), now)
+        X0, U0 = ctrl.ocp.split(seen[0])
+        X, U = ctrl.ocp.split(last)
+        shift = 0.0 if mode == 'previous' else params.Ts / params.dt
+        assert np.allclose(X0[1:], _shift_rows(X, shift)[1:]) and np.allclose(
+            U0, _shift_rows(U, shift)), mode
+
+
+def test_unknown_warm_start_is_named(tmp_path):
+    bad = tmp_path / 'nmpc.yaml'
+    bad.write_text('solver: {warm_start: none}\n')
+    with pytest.raises(ParamError, match='solver.warm_start'):
+        load_nmpc_params(bad)
 
 
 # --- failures ------------------------------------------------------------------------------------

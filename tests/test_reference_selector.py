@@ -9,8 +9,8 @@ import pytest
 
 from drift_control import path as P
 from drift_control.params import ParamError, config_dir, from_dict
-from drift_control.reference import (ReferenceParams, ReferenceSelector, load_reference_params,
-                                     mirrored_reference)
+from drift_control.reference import (ReferenceParams, ReferenceSelector, check_horizon_spacing,
+                                     load_reference_params, mirrored_reference)
 from drift_control.signals import Direction, Equilibrium, Validity, VehicleState
 
 R = 15.0
@@ -216,6 +216,14 @@ def test_horizon_sees_the_transition_coming():
     assert len(ref.horizon) == 25 and ref.horizon[0] == ref.target
     assert ref.target.r > 0 and ref.horizon[-1].r < 0, 'the last stages already drift right'
     assert np.all(np.diff([e.r for e in ref.horizon]) <= 1e-12), 'monotone towards the right'
+
+
+def test_horizon_spacing_must_match_the_nmpc_stages():
+    """A horizon spaced unlike the NMPC's stages is a ParamError naming the key."""
+    check_horizon_spacing(params(horizon_steps=25, horizon_dt=0.03), 0.03)
+    check_horizon_spacing(params(horizon_steps=0, horizon_dt=0.02), 0.03)   # no horizon
+    with pytest.raises(ParamError, match='reference.horizon_dt'):
+        check_horizon_spacing(params(horizon_steps=25, horizon_dt=0.02), 0.03)
 
 
 def constant_speed_lookup(beta_abs, radius, direction):

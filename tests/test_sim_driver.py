@@ -155,6 +155,6 @@ def test_semi_automated_dry_holds_the_drift_and_the_proposal_follows_the_driver(
     assert m['beta_rms_error_deg'] < 3.0, m['beta_rms_error_deg']
     assert m['max_abs_e_y_m'] < 1.5, m['max_abs_e_y_m']
     # the paper: the NMPC's unused steering stayed within ~5 deg of the driver's. Its command is
-    # pinned to the measured angle (one stage of rate away), its plan is free: judge both
+    # pinned to the measured angle (one control period of rate away), its plan is free: judge both
     assert m['steer_proposal_diff_max_deg'] < 5.0, m['steer_proposal_diff_max_deg']
     assert m['steer_plan_diff_rms_deg'] < 8.0, m['steer_plan_diff_rms_deg']

@@ -1,10 +1,14 @@
 """scripts/simulate.py end to end: the one-process closed loop runs and reports its metrics."""
 import json
 import math
+import re
+import shutil
 
 import pytest
 
 from conftest import load_script
+from drift_control.params import ParamError, config_dir
+from drift_sim.closed_loop import run_closed_loop
 
 
 @pytest.mark.slow
@@ -29,3 +33,14 @@ def test_a_wrong_override_is_reported_not_raised(capsys):
                            '--controller', 'feedforward', '--quiet'])
     assert rc == 2
     assert 'lockng' in capsys.readouterr().err
+
+
+def test_reference_horizon_spaced_unlike_the_nmpc_stages_is_refused(tmp_path):
+    """Checked where both configurations meet, before the first step."""
+    cfg = tmp_path / 'config'
+    shutil.copytree(config_dir(), cfg)
+    (tmp_path / 'maps').symlink_to(config_dir().parent / 'maps')
+    text = (cfg / 'reference.yaml').read_text()
+    (cfg / 'reference.yaml').write_text(re.sub(r'horizon_dt: [0-9.]+', 'horizon_dt: 0.05', text))
+    with pytest.raises(ParamError, match='reference.horizon_dt'):
+        run_closed_loop('steady_dry', config=cfg)

@@ -131,7 +131,7 @@ class Nmpc:
             result = self._failed(state, ref, now, problem, solve_time=0.0, iterations=0)
         self._last = result.command
         self._T_act = self._propagate_torque(result.command.drive_torque, state)
-        return replace(result, stage_dt=self.params.Ts)
+        return replace(result, stage_dt=self.params.dt)
 
     def _propagate_torque(self, request: float, state) -> float:
         """Wheel torque after one period of ``request`` through the powertrain lag (exact)."""
@@ -173,12 +173,15 @@ class Nmpc:
                                          state.omega_R, state.delta, T_act, T_last])
         self._T_act = x_init[S_T_ACT]
         self._update_disturbance(x_init, ref)
-        p = ocp.pack_params(reference_rows(ref, N), self.mu, self._d * _side_sign(ref))
+        d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
+        p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts)
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
         else:
-            w0, iterations = self._shifted(self._w, 1), self.params.solver.max_iter
+            shift = self._periods_in_stages(1) \
+                if self.params.solver.warm_start == 'shifted' else 0.0
+            w0, iterations = self._shifted(self._w, shift), self.params.solver.max_iter
         w0[:NS] = x_init
         t0 = time.perf_counter()
         try:
@@ -193,8 +196,9 @@ class Nmpc:
             return self._failed(state, ref, now, error, solve_time, out.iterations if out else 0)
         self._w, self._age, self._failures, self._engaged = out.w, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
-        self._x1_pred = X_pred[1, :NXO].copy()
-        command = self._command_from_plan(X_pred, U_pred, 0, now)
+        # where the next state should be: one control period of the model from this one
+        self._x1_pred = np.asarray(ocp.F_period(X_pred[0], U_pred[0], self.mu)).ravel() + d
+        command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
 
@@ -202,7 +206,7 @@ class Nmpc:
         """Lower torque bound that keeps a slow car from braking itself to a stop.
 
         In the grip-to-drift entry the OCP can hold the sideslip ramp with engine braking (the
-        braked rear axle loses lateral grip) instead of power: within its 0.5 s horizon that
+        braked rear axle loses lateral grip) instead of power: within its horizon that
         tracks beta and r, but the car loses speed the whole time, reaches walking pace and
         spins (the entry's most common failure over seeds). Below ``brake_speed_ratio[0]`` of
         the reference speed no braking torque is allowed, above ``[1]`` the full bound, linear
@@ -227,13 +231,13 @@ class Nmpc:
         states[1:, S_T_LAST] = states[1:, S_T_ACT] = T
         return self.ocp.join(states, np.tile([0.0, T], (N, 1)))
 
-    def _shifted(self, w, shift: int) -> np.ndarray:
-        """The solution ``shift`` stages later; the last stage is repeated."""
+    def _periods_in_stages(self, periods: int) -> float:
+        return periods * self.params.Ts / self.params.dt
+
+    def _shifted(self, w, shift: float) -> np.ndarray:
+        """The solution ``shift`` stages later (linear between stages); the last is repeated."""
         states, inputs = self.ocp.split(w)
-        n = self.params.N
-        idx_x = np.minimum(np.arange(n + 1) + shift, n)
-        idx_u = np.minimum(np.arange(n) + shift, n - 1)
-        return self.ocp.join(states[idx_x], inputs[idx_u])
+        return self.ocp.join(_shift_rows(states, shift), _shift_rows(inputs, shift))
 
     def _update_disturbance(self, x_init, ref: Reference) -> None:
         """Offset-free tracking: move ``d`` by a share of the last one-step prediction error.
@@ -275,10 +279,11 @@ class Nmpc:
         self._x1_pred = None
         N = self.params.N
         if self._w is not None and self._failures <= self.params.max_failures \
-                and self._age + 1 < N - self._hold:
+                and self._periods_in_stages(self._age + 1) < N - self._hold:
             self._age += 1
-            X_pred, U_pred = self.ocp.split(self._shifted(self._w, self._age))
-            command = self._command_from_plan(X_pred, U_pred, 0, now)
+            X_pred, U_pred = self.ocp.split(
+                self._shifted(self._w, self._periods_in_stages(self._age)))
+            command = self._command_from_plan(X_pred, U_pred, now)
             return NmpcResult(command, False, NmpcStatus.SHIFTED, solve_time, iterations,
                               math.nan, X_pred[:, :NXO], U_pred,
                               f'{reason}; shifted plan ({self._age})', self._failures)
@@ -321,12 +326,13 @@ class Nmpc:
         return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
 
     # --- output ---------------------------------------------------------------------------------
-    def _command_from_plan(self, X_pred, U_pred, j: int, now: float) -> Command:
-        """Command of plan stage ``j``: torque now; steering (proposal in TORQUE_ONLY) next."""
-        k = min(j + self._hold, self.params.N - 1)
-        return self._safe(Command(now, float(X_pred[k + 1, X.DELTA]),
-                                  float(U_pred[k, U.DELTA_DOT]), float(U_pred[j, U.T_R]),
-                                  self.mode))
+    def _command_from_plan(self, X_pred, U_pred, now: float) -> Command:
+        """Torque of the first stage; steering one control period on (in TORQUE_ONLY the
+        proposal, after the stages the driver holds)."""
+        k = min(self._hold, self.params.N - 1)
+        rate = float(U_pred[k, U.DELTA_DOT])
+        return self._safe(Command(now, float(X_pred[k, X.DELTA]) + rate * self.params.Ts, rate,
+                                  float(U_pred[0, U.T_R]), self.mode))
 
     def _clip_delta(self, delta: float) -> float:
         return float(np.clip(delta, -self.bounds.delta_max, self.bounds.delta_max))
@@ -387,6 +393,16 @@ class LockstepTrigger:
 
     def _ready(self) -> bool:
         return self._pending is not None and self._ref_stamp >= self._pending[0] - self.EPS
+
+
+def _shift_rows(rows: np.ndarray, shift: float) -> np.ndarray:
+    """``rows`` (one per stage) ``shift`` stages later, linear in between; the last repeated."""
+    n = len(rows) - 1
+    at = np.minimum(np.arange(n + 1) + shift, n)
+    low = np.floor(at).astype(int)
+    high = np.minimum(low + 1, n)
+    frac = (at - low)[:, None]
+    return (1.0 - frac) * rows[low] + frac * rows[high]
 
 
 def reference_rows(ref: Reference, N: int) -> np.ndarray:

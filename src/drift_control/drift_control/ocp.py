@@ -79,12 +79,17 @@ class SolverParams:
     iteration), QP solver ``qp_solver``; 'sqp' = casadi sqpmethod (exact Hessian) with
     ``qp_solver``; 'ipopt'; 'fatrop'. ``codegen``: compile the problem's functions with gcc,
     cached under ``codegen_dir`` (relative to the repository), interpreted when gcc is missing.
+    ``warm_start``: each step starts from the last solution 'shifted' by one control period
+    (linear between stages when a stage is longer than the period) or from it as it was
+    ('previous'), the real-time iteration continuing on a slowly moving problem.
     """
 
     method: Literal['rti', 'sqp', 'ipopt', 'fatrop'] = 'rti'
     qp_solver: Literal['qrqp', 'osqp', 'hpipm', 'qpoases'] = 'hpipm'
     max_iter: int = 1              # SQP / GN iterations per control step
     cold_start_iter: int = 10      # iterations of the first solve (no warm start yet)
+    warm_start: Literal['shifted', 'previous'] = 'shifted'   # the last solution moved on by one
+                                   # control period, or as it was
     tol: float = 1e-6              # NLP tolerance (sqp, ipopt, fatrop) / GN step norm (rti)
     codegen: bool = True
     codegen_dir: str = '.codegen'
@@ -100,7 +105,8 @@ class NmpcParams:
     """Everything the NMPC reads from ``config/nmpc.yaml``."""
 
     N: int = 25                     # stages [-]
-    Ts: float = 0.02                # stage length and control period [s]
+    Ts: float = 0.02                # control period [s]
+    stage_dt: float = 0.0           # stage length [s]; 0: the control period
     substeps: int = 2               # RK4 substeps per stage [-]
     front_wheel: Literal['dynamic', 'free_rolling'] = 'free_rolling'
     load_passes: int = 1            # quasi-static load transfer passes of the model [-]
@@ -123,6 +129,8 @@ class NmpcParams:
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
         require(self.Ts > 0, 'nmpc.Ts', 'must be positive')
+        require(self.stage_dt == 0 or self.stage_dt >= self.Ts, 'nmpc.stage_dt',
+                'must be 0 (the control period) or at least the control period Ts')
         require(self.substeps >= 1, 'nmpc.substeps', 'must be >= 1')
         require(self.max_input_age > 0, 'nmpc.max_input_age', 'must be positive')
         require(self.max_failures >= 0, 'nmpc.max_failures', 'must be >= 0')
@@ -137,6 +145,12 @@ class NmpcParams:
         require(0 <= self.disturbance_gain <= 1, 'nmpc.disturbance_gain', 'must be in [0, 1]')
         require(len(self.disturbance_max) == NXO and min(self.disturbance_max) >= 0,
                 'nmpc.disturbance_max', f'must be {NXO} values >= 0 (V .. delta)')
+
+
+    @property
+    def dt(self) -> float:
+        """Length of one predicted stage [s]."""
+        return self.stage_dt or self.Ts
 
 
 def load_nmpc_params(path=None) -> NmpcParams:
@@ -176,7 +190,10 @@ class Ocp:
     J : casadi.SX
         Objective. The equality constraints are ``gaps(w, p) = 0``.
     F : casadi.Function
-        One shooting stage, RK4 with ``substeps`` on ``vehicle.rhs``.
+        One shooting stage (``stage_dt``), RK4 with ``substeps`` on ``vehicle.rhs``.
+    F_period : casadi.Function
+        One control period (``Ts``) with the same RK4 step: where the next measured state should
+        be (the model-error estimate compares against it).
     """
 
     def __init__(self, vehicle: VehicleParams, params: NmpcParams):
@@ -199,12 +216,18 @@ class Ocp:
         f7 = ca.Function('f7', [x7, u_req, th],
                          [ca.vertcat(model.f(x9, u_wheel, th)[:NXO], T_dot)])
         theta = ca.vertcat(0.0, mu_s)   # curvature unused: no path states in the OCP
-        x_end = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, params.substeps)
+        x_end = rk4_step(f7, xs[:NXO + 1], us, theta, params.dt, params.substeps)
         T_act_end = x_end[NXO] if lag > 0 else us[U.T_R]
         #: one stage, ``F(x, u, mu) -> x_next`` on the OCP state (T_last+ = T_R)
         self.F = ca.Function('F', [xs, us, mu_s],
                              [ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])],
                              ['x', 'u', 'mu'], ['x_next'])
+        # one control period, the same RK4 step length: where the next measured state should be
+        period_steps = max(1, round(params.substeps * params.Ts / params.dt))
+        x_period = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, period_steps)
+        #: one control period, ``F_period(x, u, mu) -> x`` (vehicle states V .. delta)
+        self.F_period = ca.Function('F_period', [xs, us, mu_s], [x_period[:NXO]],
+                                    ['x', 'u', 'mu'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
         refs, _, _ = self.unpack_params(self.p)
@@ -214,7 +237,7 @@ class Ocp:
         for k in range(N):   # every residual is linear in w: the GN Hessian is constant
             xk, uk = self.x(self.w, k), self.u(self.w, k)
             res.append(uk[U.DELTA_DOT] / c.delta_dot)
-            res.append((uk[U.T_R] - xk[S_T_LAST]) / (c.T_R_rate * params.Ts))
+            res.append((uk[U.T_R] - xk[S_T_LAST]) / (c.T_R_rate * params.dt))
             res.append((uk[U.T_R] - refs[k][REF_T_R]) / c.T_R)
             if k > 0:   # x_0 is fixed: its cost is a constant
                 res.append((xk[:NXO] - refs[k][:NXO]) / state_scale)

@@ -76,6 +76,15 @@ def load_reference_params(path) -> ReferenceParams:
     return from_dict(ReferenceParams, raw.get('reference', raw), 'reference')
 
 
+def check_horizon_spacing(params: ReferenceParams, stage_dt: float) -> None:
+    """The horizon's equilibria must be spaced as the NMPC's stages (``nmpc.stage_dt``), or the
+    NMPC tracks the path's curvature and the flip at the wrong times; ParamError otherwise."""
+    require(params.horizon_steps == 0
+            or math.isclose(params.horizon_dt, stage_dt, rel_tol=1e-6, abs_tol=1e-9),
+            'reference.horizon_dt',
+            f'{params.horizon_dt} s, must equal the NMPC stage length ({stage_dt} s, nmpc.stage_dt)')
+
+
 class _Throttled:
     """Log a warning at most once per ``interval`` seconds per key."""
 
@@ -273,5 +282,5 @@ def mirrored_reference(ref: Reference) -> Reference:
                    heading_error=-ref.heading_error)
 
 
-__all__ = ['Lookup', 'ReferenceParams', 'ReferenceSelector', 'load_reference_params',
-           'mirrored_reference']
+__all__ = ['Lookup', 'ReferenceParams', 'ReferenceSelector', 'check_horizon_spacing',
+           'load_reference_params', 'mirrored_reference']

@@ -1,7 +1,7 @@
 """The closed loop in one process, no DDS: plant + reference selector + NMPC on a scenario.
 
 The same cores the nodes run, stepped like do-mpc's ``make_step`` loop: the controller at its own
-period (the NMPC's stage length, 20 ms) on the latest measured state, the plant every 10 ms.
+period (the NMPC's control period, 20 ms) on the latest measured state, the plant every 10 ms.
 ``scripts/simulate.py`` is its command line; the acceptance tests call ``run_closed_loop``.
 The ``feedforward`` controller applies the selected equilibrium's (delta, T_R) open loop: a
 baseline to judge the NMPC against, not a substitute.
@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from drift_control.params import ParamError, config_dir, load_surface, load_vehicle
-from drift_control.reference import ReferenceSelector, load_reference_params
+from drift_control.reference import (ReferenceSelector, check_horizon_spacing,
+                                     load_reference_params)
 from drift_control.signals import Command, Mode
 from drift_sim import metrics
 from drift_sim.scenario import load_scenario
@@ -152,6 +153,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     selector.reset(s_hint=sc.initial.s)   # on a path that passes itself, start where the car is
     ctrl = (Feedforward() if controller == 'feedforward' else
             NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name, supervised))
+    if isinstance(ctrl, NmpcController):
+        check_horizon_spacing(selector.p, ctrl.nmpc.params.dt)
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, cfg)
     every = max(1, int(round(ctrl.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))

@@ -17,7 +17,9 @@ from drift_control.nodes import convert
 from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir, load_yaml
 from drift_control.path import load_scenario_path
-from drift_control.reference import ReferenceSelector, load_reference_params
+from drift_control.ocp import load_nmpc_params
+from drift_control.reference import (ReferenceSelector, check_horizon_spacing,
+                                     load_reference_params)
 
 
 def load_map(cfg: str, map_file: str):
@@ -48,6 +50,7 @@ class ReferenceNode(Node):
         if trigger not in ('timer', 'state'):
             raise ParamError(f"reference node: trigger {trigger!r} not in ['timer', 'state']")
         params = load_reference_params(os.path.join(cfg, 'reference.yaml'))
+        check_horizon_spacing(params, load_nmpc_params(os.path.join(cfg, 'nmpc.yaml')).dt)
         scen = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')) if scenario else {}
         path = load_scenario_path(cfg, scenario, path_file)
         eqmap = load_map(cfg, map_file or scen.get('map_file', ''))
