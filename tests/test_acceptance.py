@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from drift_sim.closed_loop import run_closed_loop
+from drift_sim.sweep import LOST, SPUN, outcome
 
 pytestmark = pytest.mark.slow
 
@@ -57,7 +58,8 @@ def test_alternating_left_then_right_drift():
 
 @pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_HIGH_MU], ids=['mu-5%', 'mu+5%'])
 def test_held_drift_robust_to_friction_mass_and_actuator_delay(perturbation):
-    # measured max |e_y| 0.08 m (mu -5 %) and 0.12 m (mu +5 %); 10/10 seeds hold either way
+    # measured max |e_y| 0.08 m (mu -5 %) and 0.12 m (mu +5 %); 10/10 seeds hold either way,
+    # up to 0.11 m and 1.01 m
     m, _ = run('steady_dry', *perturbation)
     held(m, laps=3.0)
     assert m['max_abs_e_y_m'] < 1.5
@@ -65,11 +67,12 @@ def test_held_drift_robust_to_friction_mass_and_actuator_delay(perturbation):
 
 @pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_HIGH_MU], ids=['mu-5%', 'mu+5%'])
 def test_alternating_robust_to_friction_mass_and_actuator_delay(perturbation):
-    # measured max |e_y| after the entry 3.31 m (mu -5 %) and 1.40 m (mu +5 %) on seed 0; over
-    # seeds 0-9 7/10 and 6/10 hold (README: known limitations, perturbed runs)
+    # measured max |e_y| after the entry 0.86 m (mu -5 %) and 1.39 m (mu +5 %) on seed 0; over
+    # seeds 0-9 10/10 and 9/10 hold, up to 1.14 m and 2.25 m (README: known limitations,
+    # perturbed runs); with 20 ms stages 7/10 and 6/10, seed 0 3.31 m at mu -5 %
     m, _ = run('alternating_dry', *perturbation)
     held(m)
-    assert m['max_abs_e_y_m'] < 4.0
+    assert m['max_abs_e_y_m'] < 1.5
     assert m['transition_time_s'] < 2.0
 
 
@@ -86,11 +89,16 @@ def test_semi_automated_driver_steers_nmpc_torque_holds_30_deg(scenario):
 def test_weak_power_steering_is_detected_and_the_stack_stops_pressing_on():
     """The paper's 30 Nm EPS: the steering cannot hold the counter-steer.
 
-    Without the supervisor the NMPC presses on and the car leaves the path by metres; with it
-    the stack latches its fallback in the drift and the drive torque goes to zero.
+    Without the supervisor the NMPC presses on: the wheels do not go where it asks (the
+    self-aligning moment turns them toward the direction of travel) and the drift is not held
+    (measured: up to 3.2 deg from the command against 0.8 deg with the steering robot, sideslip
+    RMS error 5.3 deg, 6 m off the path; seeds 0-9 4.4-7.3 deg, none spun). With it the stack latches its fallback and the drive torque goes to zero.
     """
-    unsupervised, _ = run('eps_limited_dry', supervised=False)
-    assert unsupervised['spun'] or unsupervised['max_abs_e_y_m'] > 10.0
+    unsupervised, trace = run('eps_limited_dry', supervised=False)
+    assert outcome(unsupervised) in (SPUN, LOST), 'the drift is not held'
+    in_drift = (trace['t'] > 6.0) & (np.abs(trace['beta']) > np.radians(20.0))
+    off = np.degrees(np.abs(trace['delta'] - trace['delta_cmd']))[in_drift]
+    assert off.size and off.max() > 2.0, 'the wheels do not follow the commanded steering'
     m, trace = run('eps_limited_dry')
     trip = m['supervisor_trip_s']
     assert trip is not None and trip > 3.0, 'tripped in the drift, not in the grip phase'
