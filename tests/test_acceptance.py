@@ -9,14 +9,10 @@ import numpy as np
 import pytest
 
 from drift_sim.closed_loop import run_closed_loop
-from drift_sim.sweep import LOST, SPUN, outcome
+from drift_sim.sweep import LOST, ROBUST, ROBUST_HIGH_MU, ROBUST_LOW_MU, SPUN, outcome
 
 pytestmark = pytest.mark.slow
 
-# friction 5 % below / above the map's (on top of the +-0.05 friction field), mass +10 %,
-# torque transport delay +20 ms
-ROBUST = ('surface.mu=0.95', 'plant.body.m=2013.0', 'plant.powertrain.delay=0.05')
-ROBUST_HIGH_MU = ('surface.mu=1.05',) + ROBUST[1:]
 _cache = {}
 
 
@@ -56,23 +52,28 @@ def test_alternating_left_then_right_drift():
     assert beta.min() < -25.0 and beta.max() > 25.0, 'both drifts reached'
 
 
-@pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_HIGH_MU], ids=['mu-5%', 'mu+5%'])
+# mass +10 % and 20 ms more torque delay (the perturbation), then also friction 5 % off
+PERTURBED = pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_LOW_MU, ROBUST_HIGH_MU],
+                                    ids=['mass-delay', 'mu-5%', 'mu+5%'])
+
+
+@PERTURBED
 def test_held_drift_robust_to_friction_mass_and_actuator_delay(perturbation):
-    # measured max |e_y| 0.08 m (mu -5 %) and 0.12 m (mu +5 %); 10/10 seeds hold either way,
-    # up to 0.11 m and 1.01 m
+    # seeds 0-9 hold 10/10 in all three, max |e_y| up to 0.18 m, 0.11 m and 1.01 m
     m, _ = run('steady_dry', *perturbation)
     held(m, laps=3.0)
     assert m['max_abs_e_y_m'] < 1.5
 
 
-@pytest.mark.parametrize('perturbation', [ROBUST, ROBUST_HIGH_MU], ids=['mu-5%', 'mu+5%'])
+@PERTURBED
 def test_alternating_robust_to_friction_mass_and_actuator_delay(perturbation):
-    # measured max |e_y| after the entry 0.86 m (mu -5 %) and 1.39 m (mu +5 %) on seed 0; over
-    # seeds 0-9 10/10 and 9/10 hold, up to 1.14 m and 2.25 m (README: known limitations,
-    # perturbed runs); with 20 ms stages 7/10 and 6/10, seed 0 3.31 m at mu -5 %
+    # seeds 0-9 hold 10/10, 10/10 and 9/10, max |e_y| after the entry up to 0.96 m, 1.14 m and
+    # 2.25 m (seed 0: 0.86 m with mu -5 %, 1.39 m with mu +5 %); the paper's 1 m holds at the
+    # map's friction only (README: known limitations). With 20 ms stages the mu -/+5 % runs held
+    # 7/10 and 6/10, seed 0 3.31 m off the path with mu -5 %
     m, _ = run('alternating_dry', *perturbation)
     held(m)
-    assert m['max_abs_e_y_m'] < 1.5
+    assert m['max_abs_e_y_m'] <= (1.0 if perturbation == ROBUST else 1.5)
     assert m['transition_time_s'] < 2.0
 
 

@@ -19,6 +19,13 @@ HELD, LOST, SPUN, TRIPPED, ERROR = 'held', 'lost', 'spun', 'tripped', 'error'
 LOST_BETA_RMS_DEG = 2.0
 LOST_E_Y_M = 5.0
 
+# Robustness (issue: mass +10 %, 20 ms more actuator delay, on top of the +-0.05 friction field
+# every scenario has): mass 1830 -> 2013 kg, the torque's transport delay 30 -> 50 ms. Then the
+# same with the friction 5 % below and above the map's, a surface the controller is not told of.
+ROBUST = ('plant.body.m=2013.0', 'plant.powertrain.delay=0.05')
+ROBUST_LOW_MU = ('surface.mu=0.95',) + ROBUST
+ROBUST_HIGH_MU = ('surface.mu=1.05',) + ROBUST
+
 
 def parse_seeds(text: str) -> list[int]:
     """``'0-4,7,9'`` -> ``[0, 1, 2, 3, 4, 7, 9]`` (sorted, without repeats)."""
