@@ -237,6 +237,8 @@ def test_plan_stepped_on_by_a_fraction_of_a_stage():
     assert np.array_equal(_shift_rows(rows, 0.0), rows)
     assert np.allclose(_shift_rows(rows, 0.5), [[1, 2], [3, 4], [5, 6], [6, 7]])
     assert np.allclose(_shift_rows(rows, 1.0), [[2, 3], [4, 5], [6, 7], [6, 7]])
+    assert np.array_equal(_shift_rows(rows, 2 / 3, hold=True), rows[[0, 1, 2, 3]])
+    assert np.array_equal(_shift_rows(rows, 4 / 3, hold=True), rows[[1, 2, 3, 3]])
 
 
 def test_command_is_one_control_period_along_a_longer_stage(nmpc, eq30, params):
@@ -271,6 +273,13 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
         x = np.asarray(ctrl.ocp.F_period([*x, T_act, T_act], u, 1.0)).ravel() + offset
         T_act += (1.0 - math.exp(-p.Ts / p.torque_lag)) * (res.command.drive_torque - T_act)
     assert ctrl.model_error[2] == pytest.approx(0.002, rel=0.1)
+    seen = []
+    solve = ctrl._solver.solve
+    ctrl._solver.solve = lambda w0, p_, *a: seen.append(p_) or solve(w0, p_, *a)
+    now += p.Ts
+    ctrl.step(measure(np.concatenate([x, [0.0] * 3]), now, drive_torque=T_act),
+              Reference(now, eq30, Direction.LEFT), now)
+    assert np.allclose(seen[0][-NXO:], ctrl.model_error * stage_dt / p.Ts), 'added per stage'
 
 
 def test_warm_start_previous_or_shifted(vp, params, eq30, monkeypatch):
@@ -289,7 +298,7 @@ def test_warm_start_previous_or_shifted(vp, params, eq30, monkeypatch):
         X, U = ctrl.ocp.split(last)
         shift = 0.0 if mode == 'previous' else params.Ts / params.dt
         assert np.allclose(X0[1:], _shift_rows(X, shift)[1:]) and np.allclose(
-            U0, _shift_rows(U, shift)), mode
+            U0, _shift_rows(U, shift, hold=True)), mode
 
 
 def test_unknown_warm_start_is_named(tmp_path):
@@ -336,6 +345,25 @@ def test_solver_failure_shifts_then_falls_back(nmpc, eq30, monkeypatch):
     monkeypatch.undo()
     t = now + 10 * TS
     assert nmpc.step(measure(x, t), Reference(t, eq30), t).status == NmpcStatus.OK, 'recovers'
+
+
+def test_failed_cycle_serves_the_plan_one_control_period_on(nmpc, eq30, params, monkeypatch):
+    """With stages longer than the period the shifted plan is read at the time of the cycle:
+    the torque of the stage that time falls in, the steering where the plan has it then."""
+    x, now = warm(nmpc, eq30)
+    plan = nmpc.step(measure(x, now), Reference(now, eq30), now)
+    X, U = plan.predicted_states, plan.predicted_inputs
+    monkeypatch.setattr(nmpc._solver, 'solve',
+                        lambda *a, **k: (_ for _ in ()).throw(RuntimeError('injected')))
+    for k in (1, 2):
+        t = now + k * TS
+        res = nmpc.step(measure(x, t), Reference(t, eq30), t)
+        assert res.status == NmpcStatus.SHIFTED
+        at = k * TS / params.dt   # stages since the plan
+        j = int(at + 1e-9)
+        assert res.command.drive_torque == pytest.approx(U[j, 1])
+        delta = X[j, 5] + (at - j) * (X[j + 1, 5] - X[j, 5])
+        assert res.command.delta == pytest.approx(delta + U[j, 0] * TS, abs=1e-9)
 
 
 def test_failure_falls_back_within_one_cycle(vp, params, eq30, monkeypatch):

@@ -107,14 +107,14 @@ class Nmpc:
         self._last: Command | None = None
         self._engaged = False                # a solve has succeeded since the reset
         self._T_act = 0.0                    # modelled torque at the wheels [Nm]
-        self._d = np.zeros(NXO)              # model error per stage (offset-free tracking)
+        self._d = np.zeros(NXO)              # model error per control period (offset-free)
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
 
     @property
     def model_error(self) -> np.ndarray:
-        """The learnt model error per stage, in a left drift's frame (V .. delta)."""
+        """The learnt model error per control period, in a left drift's frame (V .. delta)."""
         return self._d.copy()
 
     # --- one cycle -----------------------------------------------------------------------------
@@ -179,7 +179,8 @@ class Nmpc:
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
         else:
-            shift = self._periods_in_stages(1) \
+            # the last solution is ``_age`` + 1 periods old (more after failed cycles)
+            shift = self._periods_in_stages(self._age + 1) \
                 if self.params.solver.warm_start == 'shifted' else 0.0
             w0, iterations = self._shifted(self._w, shift), self.params.solver.max_iter
         w0[:NS] = x_init
@@ -234,9 +235,10 @@ class Nmpc:
         return periods * self.params.Ts / self.params.dt
 
     def _shifted(self, w, shift: float) -> np.ndarray:
-        """The solution ``shift`` stages later (linear between stages); the last is repeated."""
+        """The solution ``shift`` stages later, the last stage repeated: states linear between
+        stages, inputs held over their stage (as the plan applies them)."""
         states, inputs = self.ocp.split(w)
-        return self.ocp.join(_shift_rows(states, shift), _shift_rows(inputs, shift))
+        return self.ocp.join(_shift_rows(states, shift), _shift_rows(inputs, shift, hold=True))
 
     def _update_disturbance(self, x_init, ref: Reference) -> None:
         """Offset-free tracking: move ``d`` by a share of the last one-step prediction error.
@@ -394,11 +396,14 @@ class LockstepTrigger:
         return self._pending is not None and self._ref_stamp >= self._pending[0] - self.EPS
 
 
-def _shift_rows(rows: np.ndarray, shift: float) -> np.ndarray:
-    """``rows`` (one per stage) ``shift`` stages later, linear in between; the last repeated."""
+def _shift_rows(rows: np.ndarray, shift: float, hold: bool = False) -> np.ndarray:
+    """``rows`` (one per stage) ``shift`` stages later, the last repeated; in between linear,
+    or with ``hold`` the row of the stage that time falls in (a piecewise-constant input)."""
     n = len(rows) - 1
     at = np.minimum(np.arange(n + 1) + shift, n)
-    low = np.floor(at).astype(int)
+    low = np.floor(at + 1e-9).astype(int)
+    if hold:
+        return rows[low]
     high = np.minimum(low + 1, n)
     frac = (at - low)[:, None]
     return (1.0 - frac) * rows[low] + frac * rows[high]

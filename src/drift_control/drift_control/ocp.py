@@ -12,7 +12,7 @@ structure HPIPM needs. Decision vector, stage-interleaved for the structure-expl
     x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d]`` (``d``: model error per stage, for offset-free tracking), so one compiled solver serves
+mu, d]`` (``d``: model error added per stage, for offset-free tracking), so one compiled solver serves
 every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
@@ -120,7 +120,7 @@ class NmpcParams:
     torque_only_hold_stages: int = 1       # TORQUE_ONLY: stages the driver is assumed to hold
     torque_lag: float = 0.0         # powertrain: first-order lag of the drive torque [s]; 0: none
     disturbance_gain: float = 0.0   # offset-free: share of the prediction error taken per step
-    disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per stage
+    disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per period
     disturbance_beta_band: float = 0.05   # learn d only within this of the beta reference [rad]
     disturbance_min_beta: float = 0.2     # ... of a drift reference (|beta_ref| above) [rad]
     brake_speed_ratio: tuple[float, float] = (0.0, 0.0)   # V / V_ref: no braking torque below
@@ -192,8 +192,8 @@ class Ocp:
     F : casadi.Function
         One shooting stage (``stage_dt``), RK4 with ``substeps`` on ``vehicle.rhs``.
     F_period : casadi.Function
-        One control period (``Ts``) with the same RK4 step: where the next measured state should
-        be (the model-error estimate compares against it).
+        One control period (``Ts``) in RK4 steps no longer than the stage's: where the next
+        measured state should be (the model-error estimate compares against it).
     """
 
     def __init__(self, vehicle: VehicleParams, params: NmpcParams):
@@ -222,8 +222,8 @@ class Ocp:
         self.F = ca.Function('F', [xs, us, mu_s],
                              [ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])],
                              ['x', 'u', 'mu'], ['x_next'])
-        # one control period, the same RK4 step length: where the next measured state should be
-        period_steps = max(1, round(params.substeps * params.Ts / params.dt))
+        # one control period, RK4 steps no longer than the stage's: where the next state should be
+        period_steps = max(1, math.ceil(params.substeps * params.Ts / params.dt - 1e-9))
         x_period = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, period_steps)
         #: one control period, ``F_period(x, u, mu) -> x`` (vehicle states V .. delta)
         self.F_period = ca.Function('F_period', [xs, us, mu_s], [x_period[:NXO]],
@@ -237,6 +237,8 @@ class Ocp:
         for k in range(N):   # every residual is linear in w: the GN Hessian is constant
             xk, uk = self.x(self.w, k), self.u(self.w, k)
             res.append(uk[U.DELTA_DOT] / c.delta_dot)
+            # stage 0's change comes one control period after T_last, but is scaled by the stage
+            # as the others: scaled by the period, steady_wet held 9/10 seeds (10/10 now)
             res.append((uk[U.T_R] - xk[S_T_LAST]) / (c.T_R_rate * params.dt))
             res.append((uk[U.T_R] - refs[k][REF_T_R]) / c.T_R)
             if k > 0:   # x_0 is fixed: its cost is a constant
@@ -249,7 +251,7 @@ class Ocp:
     def gaps(self, w, p):
         """Shooting gaps ``F(x_k, u_k, mu) + d - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u - x+``).
 
-        ``d`` is the estimated model error per stage (offset-free tracking, ``Nmpc``). ``w`` and
+        ``d`` is the estimated model error of one stage (offset-free tracking, ``Nmpc``). ``w`` and
         ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small code).
         """
         nz = NS + NU

@@ -151,10 +151,11 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     selector = ReferenceSelector(lookup, loaded.path,
                                  load_reference_params(cfg / 'reference.yaml'))
     selector.reset(s_hint=sc.initial.s)   # on a path that passes itself, start where the car is
+    if controller != 'feedforward':   # before the NMPC is built (and compiled)
+        from drift_control.ocp import load_nmpc_params
+        check_horizon_spacing(selector.p, load_nmpc_params(cfg / 'nmpc.yaml').dt)
     ctrl = (Feedforward() if controller == 'feedforward' else
             NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name, supervised))
-    if isinstance(ctrl, NmpcController):
-        check_horizon_spacing(selector.p, ctrl.nmpc.params.dt)
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, cfg)
     every = max(1, int(round(ctrl.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
