@@ -93,7 +93,8 @@ def test_weak_power_steering_is_detected_and_the_stack_stops_pressing_on():
     Without the supervisor the NMPC presses on: the wheels do not go where it asks (the
     self-aligning moment turns them toward the direction of travel) and the drift is not held
     (measured: up to 3.2 deg from the command against 0.8 deg with the steering robot, sideslip
-    RMS error 5.3 deg, 6 m off the path; seeds 0-9 4.4-7.3 deg, none spun). With it the stack latches its fallback and the drive torque goes to zero.
+    RMS error 5.3 deg, 6 m off the path; seeds 0-9 4.4-7.3 deg, none spun). With it the stack
+    latches its fallback and the drive torque goes to zero.
     """
     unsupervised, trace = run('eps_limited_dry', supervised=False)
     assert outcome(unsupervised) in (SPUN, LOST), 'the drift is not held'

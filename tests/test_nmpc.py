@@ -143,7 +143,8 @@ def test_model_error_is_learnt_only_in_a_steady_drift(nmpc, plant, eq30):
 
 def test_a_slow_car_is_not_braked_further_in_a_drift(vp, params, eq30):
     """Below brake_speed_ratio[0] of the reference speed the plan has no braking torque (with a
-    driver steering too); at the reference speed or while blending left and right, the full bound."""
+    driver steering too); at the reference speed or while blending left and right, the full
+    bound."""
     ctrl = Nmpc(vp, dataclasses.replace(params, brake_speed_ratio=(0.6, 0.75)))
     slow = np.array(perturbed_start(eq30))
     slow[0], slow[3], slow[4] = 0.5 * eq30.V, 0.5 * eq30.omega_F, 0.5 * eq30.omega_R

@@ -12,8 +12,8 @@ structure HPIPM needs. Decision vector, stage-interleaved for the structure-expl
     x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d]`` (``d``: model error added per stage, for offset-free tracking), so one compiled solver serves
-every reference, surface and mode. Every cost term is a
+mu, d]`` (``d``: model error added per stage, for offset-free tracking), so one compiled solver
+serves every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
 from __future__ import annotations
@@ -80,7 +80,7 @@ class SolverParams:
     ``qp_solver``; 'ipopt'; 'fatrop'. ``codegen``: compile the problem's functions with gcc,
     cached under ``codegen_dir`` (relative to the repository), interpreted when gcc is missing.
     ``warm_start``: each step starts from the last solution 'shifted' by one control period
-    (linear between stages when a stage is longer than the period) or from it as it was
+    (states linear between stages, inputs held, when a stage is longer) or from it as it was
     ('previous'), the real-time iteration continuing on a slowly moving problem.
     """
 
@@ -145,7 +145,6 @@ class NmpcParams:
         require(0 <= self.disturbance_gain <= 1, 'nmpc.disturbance_gain', 'must be in [0, 1]')
         require(len(self.disturbance_max) == NXO and min(self.disturbance_max) >= 0,
                 'nmpc.disturbance_max', f'must be {NXO} values >= 0 (V .. delta)')
-
 
     @property
     def dt(self) -> float:

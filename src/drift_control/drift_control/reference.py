@@ -82,7 +82,8 @@ def check_horizon_spacing(params: ReferenceParams, stage_dt: float) -> None:
     require(params.horizon_steps == 0
             or math.isclose(params.horizon_dt, stage_dt, rel_tol=1e-6, abs_tol=1e-9),
             'reference.horizon_dt',
-            f'{params.horizon_dt} s, must equal the NMPC stage length ({stage_dt} s, nmpc.stage_dt)')
+            f'{params.horizon_dt} s, must equal the NMPC stage length '
+            f'({stage_dt} s, nmpc.stage_dt)')
 
 
 class _Throttled:

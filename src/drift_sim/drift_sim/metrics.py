@@ -90,9 +90,9 @@ def steer_proposal_diff(t, delta_proposed, delta_applied, windows,
 
     The paper's semi-automated comparison (Sec. VI-B): in TORQUE_ONLY mode ``command.delta`` is
     what the NMPC would steer, the driver's angle is what the car got. The NMPC plans from the
-    measured angle and holds it ``torque_only_hold_stages``, so ``command.delta`` is at most one
-    control period of steering rate away from it (``delta_dot_max Ts``, 1.15 deg); the steering it plans
-    at the end of its horizon shows how far it would take the wheel.
+    measured angle and holds it ``torque_only_hold_stages``, so ``command.delta`` is at most
+    one control period of steering rate away from it (``delta_dot_max Ts``, 1.15 deg); the
+    steering it plans at the end of its horizon shows how far it would take the wheel.
 
     Parameters
     ----------
