@@ -2,8 +2,9 @@
 # Both bring .venv up to date first (scripts/setup.sh; seconds when nothing changed).
 PY       := .venv/bin/python
 GRAPH    ?= sim
-DURATION ?= 30
+DURATION ?= 0        # wall-clock seconds; 0: until the scenario ends (the simulator ends the run)
 SCENARIO ?=
+VEHICLE  ?=
 RUN      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
 
 .PHONY: setup run test
@@ -13,7 +14,8 @@ setup:
 
 run: setup
 	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) \
-		--bag $(RUN)/bag --log-dir $(RUN)/logs $(if $(SCENARIO),--scenario $(SCENARIO)) $(ARGS)
+		--bag $(RUN)/bag --log-dir $(RUN)/logs $(if $(SCENARIO),--scenario $(SCENARIO)) \
+		$(if $(VEHICLE),--vehicle $(VEHICLE)) $(ARGS)
 
 test:
 	@.ci/run $(ARGS)

@@ -13,7 +13,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from drift_control.params import load_vehicle
+from drift_control.params import ParamError, load_vehicle
 from drift_control.vehicle import NTHETA, NU, NX, X, VehicleModel
 
 
@@ -31,8 +31,13 @@ def per_call_us(fun, args, repeat: int) -> float:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--repeat', type=int, default=2000)
+    parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: defaults.yaml\'s)')
     args = parser.parse_args(argv)
-    vp = load_vehicle()
+    try:
+        vp = load_vehicle(args.vehicle)
+    except ParamError as err:
+        print(f'bench_model: {err}', file=sys.stderr)
+        return 2
     model = VehicleModel(vp)
     x = np.zeros(NX)
     x[[X.V, X.BETA, X.R, X.OMEGA_F, X.OMEGA_R, X.DELTA]] = 10.7, -0.52, 0.71, 31.2, 41.8, -0.38

@@ -26,21 +26,21 @@ import numpy as np
 from drift_control.equilibrium import solve_equilibrium
 from drift_control.nmpc import Nmpc, reference_rows
 from drift_control.ocp import NXO, NmpcParams, Ocp, load_nmpc_params
-from drift_control.params import config_dir, load_surface, load_vehicle
+from drift_control.assembly import map_file
+from drift_control.params import ParamError, load_surface, load_vehicle, vehicle_file
 from drift_control.signals import Command, Direction, Mode, Reference, VehicleState
 from drift_control.vehicle import VehicleModel
 
-REPO = config_dir().parent
 BUDGET = 0.02   # control period [s]
 
 
-def reference_equilibrium(vehicle, surface: str, beta_deg: float, radius: float):
-    """The map's equilibrium when ``maps/<surface>.npz`` exists, else solved directly."""
-    map_file = REPO / 'maps' / f'{surface}.npz'
-    if map_file.exists():
+def reference_equilibrium(name: str, vehicle, surface: str, beta_deg: float, radius: float):
+    """The vehicle's map equilibrium when its map exists, else solved directly."""
+    npz = map_file(name, surface).with_suffix('.npz')
+    if npz.exists():
         from drift_control.eqmap import load_map
-        eq, _ = load_map(map_file).lookup(math.radians(beta_deg), radius, Direction.LEFT)
-        return eq, f'map {map_file.relative_to(REPO)}'
+        eq, _ = load_map(npz, vehicle).lookup(math.radians(beta_deg), radius, Direction.LEFT)
+        return eq, f'map {npz}'
     mu = load_surface(surface).mu
     return solve_equilibrium(math.radians(-beta_deg), radius, vehicle, mu=mu).eq, 'solved'
 
@@ -224,6 +224,7 @@ def compare(vehicle, base: NmpcParams, eq, seconds: float, mu: float,
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--seconds', type=float, default=10.0, help='closed-loop length [s]')
+    ap.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: defaults.yaml\'s)')
     ap.add_argument('--surface', default='dry')
     ap.add_argument('--beta-deg', type=float, default=30.0)
     ap.add_argument('--radius', type=float, default=15.0)
@@ -235,11 +236,16 @@ def main(argv=None) -> int:
     ap.add_argument('--json', help='write the figures to this file')
     args = ap.parse_args(argv)
 
-    vehicle, params = load_vehicle(), load_nmpc_params()
-    mu = load_surface(args.surface).mu
-    eq, source = reference_equilibrium(vehicle, args.surface, args.beta_deg, args.radius)
+    try:
+        name = vehicle_file(args.vehicle).stem
+        vehicle, params = load_vehicle(name), load_nmpc_params()
+        mu = load_surface(args.surface).mu
+    except ParamError as err:
+        print(f'bench_nmpc: {err}', file=sys.stderr)
+        return 2
+    eq, source = reference_equilibrium(name, vehicle, args.surface, args.beta_deg, args.radius)
     load = os.getloadavg()
-    print(f'{args.beta_deg:g} deg drift on R {args.radius:g} m, {args.surface} (mu {mu:g}, plant '
+    print(f'{name}: {args.beta_deg:g} deg drift on R {args.radius:g} m, {args.surface} (mu {mu:g}, plant '
           f'{0.95 * mu:.3f}), reference {source}; {os.cpu_count()} cores, load '
           f'{load[0]:.2f} {load[1]:.2f}', flush=True)
     out = {'scenario': {'beta_deg': args.beta_deg, 'radius': args.radius, 'surface': args.surface,

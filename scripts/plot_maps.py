@@ -18,7 +18,9 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from drift_control.assembly import map_file  # noqa: E402
 from drift_control.eqmap import KINDS, load_map  # noqa: E402
+from drift_control.params import ParamError, default_vehicle, load_vehicle, vehicle_file  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # (field, colour, marker size, label); the rear marker is drawn larger so a coinciding front
@@ -27,8 +29,8 @@ PEAKS = (('F_yR', 'cyan', 10, 'peak rear lateral force'), ('F_yF', 'teal', 6,
          'peak front lateral force'), ('T_R', 'blue', 6, 'peak drive torque'))
 
 
-def plot(surface: str, radii: list[float], out: Path) -> None:
-    m = load_map(ROOT / 'maps' / surface)
+def plot(vehicle: str, surface: str, radii: list[float], out: Path) -> None:
+    m = load_map(map_file(vehicle, surface), load_vehicle(vehicle))
     beta_deg = np.degrees(m.beta_abs)
     d = m.data
     panels = [('(a) $F_{yF}^{eq}$ [kN]', lambda j: d['F_yF'][:, j] / 1e3),
@@ -73,7 +75,8 @@ def plot(surface: str, radii: list[float], out: Path) -> None:
     handles.append(plt.Line2D([], [], ls='', marker='x', color='k',
                               label='rear slip past its longitudinal peak (drift onset)'))
     fig.legend(handles=handles, loc='lower center', ncol=6, fontsize=9)
-    fig.suptitle(f'Steady-state drift equilibria, {surface} (mu {m.meta["mu"]}), left drift; '
+    fig.suptitle(f'{vehicle}: steady-state drift equilibria, {surface} (mu {m.meta["mu"]}), '
+                 f'left drift; '
                  f'{m.converged_fraction:.0%} of the grid converged, gaps = no equilibrium '
                  f'within the bounds')
     fig.tight_layout(rect=(0, 0.07, 1, 1))
@@ -85,12 +88,19 @@ def plot(surface: str, radii: list[float], out: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: defaults.yaml\'s)')
     ap.add_argument('--surface', choices=('dry', 'wet', 'all'), default='all')
     ap.add_argument('--radii', default='8,12,16,20,25,30,40', help='radii to draw [m]')
     args = ap.parse_args(argv)
     radii = [float(r) for r in args.radii.split(',')]
+    try:
+        vehicle = vehicle_file(args.vehicle).stem
+    except ParamError as err:
+        print(f'plot_maps: {err}', file=sys.stderr)
+        return 2
+    suffix = '' if vehicle == default_vehicle() else f'_{vehicle}'
     for surface in (('dry', 'wet') if args.surface == 'all' else (args.surface,)):
-        plot(surface, radii, ROOT / 'docs' / f'maps_{surface}.png')
+        plot(vehicle, surface, radii, ROOT / 'docs' / f'maps_{surface}{suffix}.png')
     return 0
 
 

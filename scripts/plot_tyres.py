@@ -12,17 +12,22 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from drift_control.params import load_surface, load_vehicle  # noqa: E402
+from drift_control.params import ParamError, load_surface, load_vehicle, vehicle_file  # noqa: E402
 from drift_control.tyre import (combined_forces, front_forces, lateral_peak_slip,  # noqa: E402
                                 longitudinal_peak_slip)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: defaults.yaml\'s)')
     parser.add_argument('--out', default='docs/tyre_curves.png')
     args = parser.parse_args(argv)
-
-    vp = load_vehicle()
+    try:
+        vfile = vehicle_file(args.vehicle)
+        vp = load_vehicle(vfile)
+    except ParamError as err:
+        print(f'plot_tyres: {err}', file=sys.stderr)
+        return 2
     f_zF = vp.m * vp.g * vp.b / vp.L
     f_zR = vp.m * vp.g * vp.a / vp.L
     alpha = np.radians(np.linspace(-60, 60, 601))
@@ -56,7 +61,7 @@ def main(argv=None) -> int:
     for a in ax.flat:
         a.grid(True, alpha=0.3)
         a.legend(fontsize=7)
-    fig.suptitle('Controller tyre model (config/vehicle/m3_competition.yaml)')
+    fig.suptitle(f'Controller tyre model (config/vehicle/{vfile.name})')
     fig.tight_layout()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

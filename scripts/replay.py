@@ -97,7 +97,7 @@ def rerun(args) -> int:
     from drift_tools.rerun import rerun_controller
     try:
         result = rerun_controller(Path(args.bag), control_mode=args.control_mode,
-                                  surface=args.surface)
+                                  surface=args.surface, vehicle=args.vehicle)
     except (ValueError, LookupError, FileNotFoundError) as err:
         print(f'replay: {err}', file=sys.stderr)
         return 2
@@ -121,6 +121,7 @@ def main(argv=None) -> int:
     parser.add_argument('--rerun', action='store_true', help='re-run the NMPC core offline')
     parser.add_argument('--control-mode', default='full', choices=('full', 'torque_only'))
     parser.add_argument('--surface', help='friction the NMPC assumes (default dry)')
+    parser.add_argument('--vehicle', help='the car the run drove (default: config/defaults.yaml\'s)')
     parser.add_argument('--json', help='with --rerun: write the comparison here')
     args = parser.parse_args(argv)
     if not (Path(args.bag) / 'metadata.yaml').exists():

@@ -4,7 +4,9 @@
     .venv/bin/python scripts/run_stack.py --graph sim --duration 20 --bag runs/now
     .venv/bin/python scripts/run_stack.py --graph vehicle --nodes bridge,recorder --bag runs/car
 
-Ctrl-C (or SIGTERM) stops every node cleanly. Exits non-zero if a node crashes or must be killed.
+The run ends at --duration (wall clock), on Ctrl-C or SIGTERM, or when the simulator's scenario
+(or --sim-duration of sim time) is over; every node is then stopped cleanly. Exits non-zero if a
+node crashes or must be killed.
 With --bag, a summary read back from the bag is printed at the end.
 """
 import argparse
@@ -14,7 +16,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from drift_control.params import ParamError, config_dir
+from drift_control.assembly import load_setup
+from drift_control.params import ParamError, config_dir, vehicle_file
 from drift_tools.launcher import Launcher
 from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, RunOptions,
                                load_stack, node_command, node_env, write_params_file)
@@ -25,10 +28,16 @@ def parse_args(argv=None):
     p.add_argument('--graph', default='sim', help='graph of stack.yaml (default: sim)')
     p.add_argument('--nodes', default='', help='comma-separated subset of the graph\'s nodes')
     p.add_argument('--duration', type=float, default=0.0,
-                   help='stop after this many wall-clock seconds (0: run until Ctrl-C)')
+                   help='stop after this many wall-clock seconds (0: until Ctrl-C or the scenario\'s end)')
+    p.add_argument('--sim-duration', type=float, default=0.0,
+                   help='simulated seconds the simulator runs before it ends the run '
+                        '(default: the scenario\'s duration)')
     p.add_argument('--bag', type=Path, help='record to this rosbag2 (MCAP) directory')
     p.add_argument('--scenario', default=None,
                    help='scenario passed to every node (default: stack.yaml defaults.scenario)')
+    p.add_argument('--vehicle', default=None,
+                   help='vehicle passed to every node (default: the scenario\'s, else '
+                        'config/defaults.yaml\'s)')
     p.add_argument('--clock', choices=CLOCK_MODES, default=None,
                    help='lockstep: nodes use /clock, published by the clock owner (the sim); '
                         'default: stack.yaml defaults.clock, else realtime')
@@ -56,6 +65,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     cfg_dir = (args.config_dir or config_dir()).resolve()
     try:
+        if args.vehicle:
+            vehicle_file(args.vehicle, cfg_dir)   # an unknown vehicle: one line, before any node
         stack = load_stack(args.stack or cfg_dir / 'stack.yaml')
         nodes = stack.graph(args.graph, [n for n in args.nodes.split(',') if n])
         if args.bag is not None:
@@ -72,7 +83,11 @@ def main(argv=None) -> int:
                           else args.scenario,
                           clock=args.clock or stack.defaults.get('clock', 'realtime'),
                           bag_dir=args.bag, domain_id=args.domain_id,
+                          sim_duration=args.sim_duration,
+                          vehicle=args.vehicle or '',
                           discovery_range=args.discovery_range)
+        if opts.scenario:   # the controller's configuration and map, checked before any node
+            load_setup(cfg_dir, opts.scenario, opts.vehicle or None)
     except ParamError as err:
         print(f'run_stack: {err}', file=sys.stderr)
         return 2

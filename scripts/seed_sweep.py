@@ -40,6 +40,8 @@ def main(argv=None) -> int:
     parser.add_argument('--seeds', default='0-4', help='e.g. 0-9 or 0,3,7 (default 0-4)')
     parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                         help='override a scenario key in every run (surface.mu=0.95)')
+    parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml for every run (default: '
+                        'the scenario\'s)')
     parser.add_argument('--config-dir', default=str(config_dir()),
                         help='a config directory (a variant of config/ to compare)')
     parser.add_argument('--jobs', type=int, default=2, help='processes (default 2)')
@@ -49,6 +51,8 @@ def main(argv=None) -> int:
         seeds = parse_seeds(args.seeds)
     except ValueError as err:
         parser.error(str(err))
+    if args.vehicle:
+        args.set.append(f'vehicle={args.vehicle}')
     jobs = [(sc, tuple(args.set), seed, args.config_dir) for sc in args.scenario for seed in seeds]
     t0 = time.perf_counter()
     results = []

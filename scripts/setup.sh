@@ -78,14 +78,14 @@ fi
 
 # 5. The NMPC's compiled QP functions (gcc, cached in .codegen/ by a hash of the problem): built
 #    here so that no node compiles for ~20 s at start-up, while a lock-step or real-time run waits.
-h=$(hash_files config/nmpc.yaml config/vehicle/*.yaml src/drift_control/drift_control/{ocp,ocp_solvers,vehicle,tyre,params}.py)
+h=$(hash_files config/nmpc.yaml config/defaults.yaml config/vehicle/*.yaml src/drift_control/drift_control/{ocp,ocp_solvers,vehicle,tyre,params,assembly}.py)
 if ! stamp_ok nmpc_codegen "$h" || [[ ! -d .codegen ]]; then
-    log "compiling the NMPC solver (.codegen/)"
+    log "compiling the NMPC solver of every vehicle in config/vehicle (.codegen/)"
     t0=$SECONDS
-    "$V/bin/python" -c 'from drift_control.nmpc import Nmpc
-from drift_control.ocp import load_nmpc_params
-from drift_control.params import load_vehicle
-Nmpc(load_vehicle(), load_nmpc_params())' || { log "NMPC solver build failed"; exit 1; }
-    log "NMPC solver compiled in $((SECONDS - t0)) s"
+    "$V/bin/python" -c 'from drift_control.assembly import load_setup
+from drift_control.params import vehicle_names
+for name in vehicle_names():
+    load_setup(vehicle=name, with_map=False).build_nmpc()' || { log "NMPC solver build failed"; exit 1; }
+    log "NMPC solvers compiled in $((SECONDS - t0)) s"
     stamp_set nmpc_codegen "$h"
 fi

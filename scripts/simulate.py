@@ -3,6 +3,7 @@
 
     .venv/bin/python scripts/simulate.py --scenario steady_dry --json out.json
     .venv/bin/python scripts/simulate.py --scenario steady_wet --set surface.mu=0.55 --seed 3
+    .venv/bin/python scripts/simulate.py --scenario steady_dry --vehicle gr86
 
 The loop itself is ``drift_sim.closed_loop.run_closed_loop``; this prints its metrics as JSON.
 ``--controller feedforward`` applies the selected equilibrium's (delta, T_R) open loop: a
@@ -28,6 +29,8 @@ def main(argv=None) -> int:
     parser.add_argument('--scenario', required=True, help='name under config/scenarios or file')
     parser.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                         help='override a scenario key (surface.mu=0.55, plant.lsd.locking=1)')
+    parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: the scenario\'s, '
+                        'else config/defaults.yaml\'s)')
     parser.add_argument('--seed', type=int, default=None)
     parser.add_argument('--controller', choices=('nmpc', 'feedforward'), default='nmpc')
     parser.add_argument('--plant', choices=('double_track', 'single_track'),
@@ -43,7 +46,7 @@ def main(argv=None) -> int:
     try:
         out, trace = run_closed_loop(args.scenario, args.set, args.seed, args.controller,
                                      args.plant, args.config_dir, progress=not args.quiet,
-                                     stop_on_spin=args.stop_on_spin)
+                                     stop_on_spin=args.stop_on_spin, vehicle=args.vehicle)
     except ParamError as err:
         print(f'simulate: {err}', file=sys.stderr)
         return 2

@@ -2,13 +2,14 @@
 import ast
 import math
 import random
+import shutil
 from pathlib import Path
 
 import pytest
 import yaml
 from crccheck.crc import Crc8SaeJ1850
 
-from drift_control.params import ParamError, config_dir
+from drift_control.params import ParamError, config_dir, load_vehicle, vehicle_names
 from drift_control.signals import Validity, VehicleState
 from drift_vehicle_bridge.codec import (COMMAND_FRAMES, STATE_FRAMES, Codec, Fault, FrameError,
                                         state_signals)
@@ -110,11 +111,12 @@ def test_vehicle_state_survives_the_state_frames(codec):
 def test_bridge_yaml_loads_and_bad_keys_name_themselves(tmp_path):
     params = load_bridge_params()
     assert params.cycle_time == 0.01 and params.bus.interface
+    shutil.copytree(config_dir(), tmp_path / 'config')
     raw = yaml.safe_load((config_dir() / 'bridge.yaml').read_text())
     raw['mode']['arm_envelope']['beta_maxx'] = 0.3
-    (tmp_path / 'bridge.yaml').write_text(yaml.safe_dump(raw))
+    (tmp_path / 'config' / 'bridge.yaml').write_text(yaml.safe_dump(raw))
     with pytest.raises(ParamError, match=r'bridge\.mode\.arm_envelope.*beta_maxx'):
-        load_bridge_params(tmp_path)
+        load_bridge_params(tmp_path / 'config')
     with pytest.raises(ParamError, match=r'bridge\.limits\.torque_rate_max'):
         load_bridge_params(None, {'limits': {'torque_rate_max': 'fast'}})
     with pytest.raises(ParamError, match=r'bridge\.monitor\.max_counter_delta'):
@@ -130,13 +132,16 @@ def test_tx_allow_only_names_our_own_frames_and_limits_fit_the_dbc(codec):
         Gateway(None, codec, load_bridge_params(None, {'limits': {'torque_max': 9000.0}}))
 
 
-def test_command_limits_stay_inside_the_vehicle_limits():
-    bridge = load_bridge_params().limits
-    vehicle = yaml.safe_load((config_dir() / 'vehicle' / 'm3_competition.yaml').read_text())
-    lim = vehicle['limits']
-    assert bridge.delta_max <= lim['delta_max']
-    assert bridge.delta_rate_max <= lim['delta_dot_max']
-    assert lim['T_R_min'] <= bridge.torque_min and bridge.torque_max <= lim['T_R_max']
+@pytest.mark.parametrize('vehicle', vehicle_names())
+def test_command_limits_derive_from_the_vehicle_and_may_only_tighten(vehicle):
+    bridge = load_bridge_params(vehicle=vehicle).limits
+    lim = load_vehicle(vehicle).limits
+    assert (bridge.delta_max, bridge.delta_rate_max, bridge.torque_min, bridge.torque_max) == \
+        (lim.delta_max, lim.delta_dot_max, lim.T_R_min, lim.T_R_max)
+    tight = load_bridge_params(None, {'limits': {'torque_max': 0.5 * lim.T_R_max}}, vehicle)
+    assert tight.limits.torque_max == 0.5 * lim.T_R_max
+    with pytest.raises(ParamError, match=r'bridge\.limits\.delta_max.*only tighten'):
+        load_bridge_params(None, {'limits': {'delta_max': lim.delta_max + 0.1}}, vehicle)
 
 
 def test_core_modules_do_not_import_rclpy():

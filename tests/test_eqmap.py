@@ -10,7 +10,9 @@ import pytest
 from drift_control.equilibrium import scaled_derivative, solve_equilibrium
 from drift_control.eqmap import (KINDS, GridParams, MapError, MapParams, build_map, fill_holes,
                                  load_map, load_map_params, save_map)
-from drift_control.params import ParamError, Surface, load_surface, load_vehicle
+from drift_control.assembly import map_file
+from drift_control.params import (ParamError, Surface, default_vehicle, load_surface,
+                                  load_vehicle)
 
 from conftest import load_script
 from drift_control.signals import Direction, Equilibrium
@@ -32,7 +34,7 @@ def model(vehicle):
 
 @pytest.fixture(scope='module', params=SURFACES)
 def committed(request):
-    return load_map(ROOT / 'maps' / request.param)
+    return load_map(map_file(default_vehicle(), request.param))
 
 
 @pytest.fixture(scope='module')
@@ -93,7 +95,7 @@ def test_speed_grows_with_radius_and_wheels_diverge(committed):
 
 def test_committed_maps_match_current_parameters(recwarn):
     for name in SURFACES:
-        m = load_map(ROOT / 'maps' / name)
+        m = load_map(map_file(default_vehicle(), name))
         assert m.meta['surface'] == name
     assert not [w for w in recwarn if 'stale' in str(w.message)]
 

@@ -482,11 +482,9 @@ def test_solvers_agree(vp, eq30, method, qp):
 def test_drift_entry_from_grip_on_a_ramped_reference(nmpc, plant, vp):
     """From a 9 m/s grip turn, a reference ramped at 1 rad/s (as the selector limits it)."""
     from drift_control.eqmap import load_map
-    from drift_control.params import config_dir
-    map_file = config_dir().parent / 'maps' / 'dry.npz'
-    if not map_file.exists():
-        pytest.skip('no maps/dry.npz')
-    eqmap = load_map(map_file)
+    from drift_control.assembly import map_file
+    from drift_control.params import default_vehicle
+    eqmap = load_map(map_file(default_vehicle(), 'dry'))
     nmpc.reset()
     x = np.zeros(9)
     x[:6] = [9.0, -0.02, 0.6, 9.0 / vp.R_F, 9.0 / vp.R_R, 0.05]

@@ -150,18 +150,15 @@ def test_bad_yaml_is_a_param_error_naming_the_key(raw, key):
 
 
 def test_scenario_path_is_inline_or_a_paths_file(tmp_path):
-    (tmp_path / 'scenarios').mkdir()
+    from drift_control.scenario import resolve_path
     (tmp_path / 'paths').mkdir()
     (tmp_path / 'paths' / 'ring.yaml').write_text('path: {type: circle, radius: 20.0}\n')
-    (tmp_path / 'scenarios' / 'by_name.yaml').write_text('path: ring\n')
-    (tmp_path / 'scenarios' / 'inline.yaml').write_text(
-        'path: {type: circle, radius: 10.0, direction: right}\n')
-    (tmp_path / 'scenarios' / 'none.yaml').write_text('mu: 1.0\n')
-    assert P.load_scenario_path(tmp_path, 'by_name').K[0] == pytest.approx(1 / 20.0)
-    assert P.load_scenario_path(tmp_path, 'inline').K[0] == pytest.approx(-1 / 10.0)
-    assert P.load_scenario_path(tmp_path, 'inline', str(tmp_path / 'paths' / 'ring.yaml')).K[0] \
-        == pytest.approx(1 / 20.0), 'path_file wins'
-    with pytest.raises(ParamError, match='path: missing'):
-        P.load_scenario_path(tmp_path, 'none')
+    assert resolve_path('ring', tmp_path, 'by_name').K[0] == pytest.approx(1 / 20.0)
+    assert resolve_path('ring', tmp_path, 'by_name').name == 'ring', 'named after its file'
+    inline = {'type': 'circle', 'radius': 10.0, 'direction': 'right'}
+    assert resolve_path(inline, tmp_path, 'inline').K[0] == pytest.approx(-1 / 10.0)
+    assert P.load_path_file(tmp_path / 'paths' / 'ring.yaml').K[0] == pytest.approx(1 / 20.0)
+    with pytest.raises(ParamError, match='none.path: expected a mapping'):
+        resolve_path(None, tmp_path, 'none')
     with pytest.raises(ParamError, match='not found'):
-        P.load_scenario_path(tmp_path, 'nosuch')
+        resolve_path('nosuch', tmp_path, 'nosuch')

@@ -9,11 +9,12 @@ import dataclasses
 import numpy as np
 import pytest
 
+from drift_control.assembly import map_file
 from drift_control.eqmap import load_map
 from drift_control.model_plant import ModelPlant
 from drift_control.nmpc import Nmpc
 from drift_control.ocp import load_nmpc_params
-from drift_control.params import config_dir, load_vehicle, load_yaml
+from drift_control.params import config_dir, default_vehicle, load_vehicle, load_yaml
 from drift_control.path import load_path
 from drift_control.reference import ReferenceSelector, load_reference_params
 from drift_control.vehicle import NX, X
@@ -29,7 +30,7 @@ def run(correction: bool) -> np.ndarray:
     params = load_reference_params(cfg / 'reference.yaml')
     if not correction:
         params = dataclasses.replace(params, k_p=0.0, k_d=0.0, k_i=0.0)
-    selector = ReferenceSelector(load_map(cfg.parent / 'maps' / 'dry.npz').lookup, path, params)
+    selector = ReferenceSelector(load_map(map_file(default_vehicle(), 'dry')).lookup, path, params)
     nmpc = Nmpc(vp, load_nmpc_params(cfg / 'nmpc.yaml'))
     plant = ModelPlant(vp, mu=0.95, noise={'V': 0.05, 'beta': 0.003, 'r': 0.005}, seed=2)
     x0 = np.zeros(NX)

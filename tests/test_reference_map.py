@@ -1,19 +1,18 @@
-"""The selector on the real equilibrium map (maps/dry, built by the map engineer's script)."""
+"""The selector on the default vehicle's real dry equilibrium map (scripts/build_maps.py)."""
 import math
 import os
 
 import numpy as np
 import pytest
 
-from drift_control.params import config_dir, load_yaml
+from drift_control.assembly import map_file
+from drift_control.params import config_dir, default_vehicle, load_yaml
 from drift_control.path import load_path
 from drift_control.reference import ReferenceSelector, load_reference_params
 from drift_control.signals import Direction, VehicleState
 
 eqmap = pytest.importorskip('drift_control.eqmap')
-MAP = os.path.join(os.path.dirname(str(config_dir())), 'maps', 'dry')
-if not os.path.isfile(MAP + '.npz'):
-    pytest.skip('maps/dry.npz not built', allow_module_level=True)
+MAP = map_file(default_vehicle(), 'dry')
 
 
 @pytest.fixture(scope='module')

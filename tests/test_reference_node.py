@@ -1,5 +1,6 @@
 """reference_node in its own process: refuses to start without a map, publishes with one."""
 import math
+import shutil
 import os
 import subprocess
 import sys
@@ -20,13 +21,14 @@ _WITH_FAKE_MAP = textwrap.dedent('''
     import math, sys, types
     from drift_control.signals import Equilibrium
     class FakeMap:
-        radius = [8.0, 40.0]
+        radius, meta = [8.0, 40.0], {}
         def lookup(self, beta_abs, radius, direction):
             V = math.sqrt(7.0 * radius); d = int(direction)
             return Equilibrium(V, -d * beta_abs, d * V / radius, V / 0.3, V / 0.3, -d * 0.1,
                                800.0), False
     fake = types.ModuleType('drift_control.eqmap')
-    fake.load_map = lambda path: FakeMap()
+    fake.MapError = ValueError
+    fake.load_map = lambda *args, **kwargs: FakeMap()
     sys.modules['drift_control.eqmap'] = fake
     from drift_control.nodes.reference_node import main
     sys.exit(main())
@@ -42,8 +44,9 @@ def env(monkeypatch):
 
 
 def test_node_exits_non_zero_without_a_map(env, tmp_path):
+    shutil.copytree(config_dir(), tmp_path / 'config')    # its maps dir, ../maps, is empty
     cmd = [sys.executable, '-m', 'drift_control.nodes.reference_node', '--ros-args',
-           '-p', f'path_file:={CIRCLE}', '-p', f'map_file:={tmp_path / "missing.npz"}']
+           '-p', f'path_file:={CIRCLE}', '-p', f'config_dir:={tmp_path / "config"}']
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode != 0
     assert 'map' in out.stderr.lower(), out.stderr
@@ -99,18 +102,14 @@ def _drive_node(cmd, env):
     return refs
 
 
-def test_node_publishes_references_and_the_path(env, tmp_path):
-    map_file = tmp_path / 'fake_map'
-    map_file.write_text('the fake load_map ignores this')
+def test_node_publishes_references_and_the_path(env):
     _drive_node([sys.executable, '-c', _WITH_FAKE_MAP, '--ros-args', '-p',
-                 f'path_file:={CIRCLE}', '-p', f'map_file:={map_file}'], env)
+                 f'path_file:={CIRCLE}'], env)
 
 
-@pytest.mark.skipif(not os.path.isfile(os.path.join(os.path.dirname(str(config_dir())), 'maps',
-                                                    'dry.npz')), reason='maps/dry not built')
 def test_node_with_the_real_map(env):
     refs = _drive_node([sys.executable, '-m', 'drift_control.nodes.reference_node', '--ros-args',
-                        '-p', f'path_file:={CIRCLE}', '-p', 'map_file:=maps/dry'], env)
+                        '-p', f'path_file:={CIRCLE}'], env)
     last = refs[-1]
     assert len(last.horizon) > 1
     assert last.s < 20.0, 'still in the grip entry of circle_left_15 (grip_until 20 m)'

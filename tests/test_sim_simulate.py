@@ -7,6 +7,7 @@ import shutil
 import pytest
 
 from conftest import load_script
+from drift_control.assembly import maps_dir
 from drift_control.params import ParamError, config_dir
 from drift_sim.closed_loop import run_closed_loop
 
@@ -39,7 +40,7 @@ def test_reference_horizon_spaced_unlike_the_nmpc_stages_is_refused(tmp_path):
     """Checked where both configurations meet, before the first step."""
     cfg = tmp_path / 'config'
     shutil.copytree(config_dir(), cfg)
-    (tmp_path / 'maps').symlink_to(config_dir().parent / 'maps')
+    (tmp_path / 'maps').symlink_to(maps_dir())
     text = (cfg / 'reference.yaml').read_text()
     (cfg / 'reference.yaml').write_text(re.sub(r'horizon_dt: [0-9.]+', 'horizon_dt: 0.05', text))
     with pytest.raises(ParamError, match='reference.horizon_dt'):

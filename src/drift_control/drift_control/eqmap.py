@@ -319,7 +319,7 @@ def save_map(eqmap: EquilibriumMap, path) -> tuple[Path, Path]:
 
 
 def load_map(path, vehicle: VehicleParams | None = None,
-             surface: Surface | None = None) -> EquilibriumMap:
+             surface: Surface | None = None, strict: bool = False) -> EquilibriumMap:
     """Read a map and check it against the current parameters.
 
     Parameters
@@ -329,6 +329,8 @@ def load_map(path, vehicle: VehicleParams | None = None,
     vehicle, surface : optional
         The parameters the map must match; default the project's YAML (``load_vehicle()`` and
         the surface named in the metadata).
+    strict : bool
+        A map built for other parameters is a MapError (else a warning, for analysis tools).
 
     Raises
     ------
@@ -359,7 +361,7 @@ def load_map(path, vehicle: VehicleParams | None = None,
         raise MapError(f'{npz}: not a readable map archive: {type(err).__name__}: {err}') from None
     _check_arrays(npz, arrays, meta)
 
-    _check_hash(meta, meta_path, vehicle, surface)
+    _check_hash(meta, meta_path, vehicle, surface, strict)
     beta_abs, radius = arrays.pop('beta_abs'), arrays.pop('radius')
     return EquilibriumMap(beta_abs, radius, arrays, meta)
 
@@ -390,7 +392,7 @@ def _check_arrays(npz: Path, arrays: dict, meta: dict) -> None:
             raise MapError(f'{npz}: non-finite {k!r} at converged points')
 
 
-def _check_hash(meta: dict, meta_path: Path, vehicle, surface) -> None:
+def _check_hash(meta: dict, meta_path: Path, vehicle, surface, strict: bool) -> None:
     try:
         vehicle = vehicle if vehicle is not None else load_vehicle()
         surface = surface if surface is not None else load_surface(meta['surface'])
@@ -401,6 +403,8 @@ def _check_hash(meta: dict, meta_path: Path, vehicle, surface) -> None:
         msg = (f'{meta_path}: equilibrium map built for parameter hash {meta["params_hash"]}, '
                f'current parameters hash to {current} (surface {surface.name}, mu {surface.mu}); '
                f'the map is stale -- rebuild with scripts/build_maps.py')
+        if strict:
+            raise MapError(msg)
         log.warning(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=3)
 

@@ -213,8 +213,7 @@ class Nmpc:
         the reference speed no braking torque is allowed, above ``[1]`` the full bound, linear
         in between. Not while blending left and right: the blended speed is no equilibrium's.
         In TORQUE_ONLY too: there the NMPC braked in the grip phase, chasing a sideslip it
-        cannot reach without the steering, and stopped the car (semi_auto_wet seed 0 at
-        0.2 m/s; with the guard it stays above 4.5 m/s and enters on the ramp).
+        cannot reach without the steering (measurements: docs/tuning_log.md).
         """
         low, high = self.params.brake_speed_ratio
         if high <= 0.0 or ref.direction == Direction.NONE or not ref.target.V > 0.0:

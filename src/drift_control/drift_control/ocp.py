@@ -237,7 +237,7 @@ class Ocp:
             xk, uk = self.x(self.w, k), self.u(self.w, k)
             res.append(uk[U.DELTA_DOT] / c.delta_dot)
             # stage 0's change comes one control period after T_last, but is scaled by the stage
-            # as the others: scaled by the period, steady_wet held 9/10 seeds (10/10 now)
+            # as the others (scaled by the period, wet entries spun more: docs/tuning_log.md)
             res.append((uk[U.T_R] - xk[S_T_LAST]) / (c.T_R_rate * params.dt))
             res.append((uk[U.T_R] - refs[k][REF_T_R]) / c.T_R)
             if k > 0:   # x_0 is fixed: its cost is a constant

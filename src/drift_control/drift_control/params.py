@@ -5,6 +5,7 @@ path (``vehicle.rear_tyre.pKx1``) so a typo in a YAML file is found at start-up,
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -128,6 +129,62 @@ def params_hash(*objs) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+# --- overrides: --set key=value on every command line and node
+
+def split_override(item: str) -> tuple[str, object]:
+    """``'a.b=1.5'`` -> ``('a.b', 1.5)``; the value is parsed as YAML (numbers, lists, bools)."""
+    if '=' not in item:
+        raise ParamError(f'override {item!r}: expected key=value')
+    key, text = item.split('=', 1)
+    if not key.strip():
+        raise ParamError(f'override {item!r}: expected key=value')
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ParamError(f'override {item!r}: value is not valid YAML: {err}') from None
+    return key.strip(), value
+
+
+def set_key(raw: dict, dotted: str, value, where: str = '') -> None:
+    """Set ``raw[a][b][c] = value`` for ``dotted = 'a.b.c'``; intermediate maps must exist.
+
+    A key that does not exist at its level is still set (the validator then names it if it is
+    wrong), but an intermediate that is not a mapping is an error.
+    """
+    parts = dotted.split('.')
+    node = raw
+    for i, part in enumerate(parts[:-1]):
+        nxt = node.get(part)
+        if nxt is None:
+            nxt = node[part] = {}
+        if not isinstance(nxt, dict):
+            raise ParamError(f"{where}: override {dotted}: {'.'.join(parts[:i + 1])} is not a "
+                             'mapping')
+        node = nxt
+    node[parts[-1]] = value
+
+
+def merge(base: dict, extra: dict | None) -> dict:
+    """Deep merge of two mappings (``extra`` wins); neither is modified."""
+    out = copy.deepcopy(base)
+    for key, value in (extra or {}).items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def parse_overrides(items, where: str = 'override') -> dict:
+    """``['a.b=1', 'c=x']`` -> ``{'a': {'b': 1}, 'c': 'x'}``; empty items are ignored."""
+    out: dict = {}
+    for item in items or ():
+        if item:
+            key, value = split_override(item)
+            set_key(out, key, value, where=where)
+    return out
+
+
 # --- vehicle and tyres -----------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -247,9 +304,41 @@ class Surface:
         require(0 < self.mu <= 2.0, f'surface {self.name}.mu', f'must be in (0, 2], got {self.mu}')
 
 
-def load_vehicle(path: str | os.PathLike | None = None) -> VehicleParams:
-    """Load the controller's vehicle parameters (default ``config/vehicle/m3_competition.yaml``)."""
-    path = Path(path) if path else config_dir() / 'vehicle' / 'm3_competition.yaml'
+def default_vehicle(config: str | os.PathLike | None = None) -> str:
+    """The vehicle a run uses when neither its scenario nor the command line names one.
+
+    It is ``vehicle:`` in ``config/defaults.yaml``, the one place the default is written.
+    """
+    path = Path(config or config_dir()) / 'defaults.yaml'
+    name = load_yaml(path).get('vehicle')
+    if not isinstance(name, str) or not name:
+        raise ParamError(f'{path}: defaults.vehicle: expected a vehicle name, got {name!r}')
+    return name
+
+
+def vehicle_names(config: str | os.PathLike | None = None) -> list[str]:
+    """Names of the vehicles under ``config/vehicle`` (every YAML there but ``surfaces.yaml``)."""
+    folder = Path(config or config_dir()) / 'vehicle'
+    return sorted(p.stem for p in folder.glob('*.yaml') if p.stem != 'surfaces')
+
+
+def vehicle_file(name: str | None = None, config: str | os.PathLike | None = None) -> Path:
+    """``config/vehicle/<name>.yaml`` (default: ``default_vehicle``); unknown names are refused."""
+    name = name or default_vehicle(config)
+    path = Path(config or config_dir()) / 'vehicle' / f'{name}.yaml'
+    if name == 'surfaces' or '/' in name or not path.is_file():
+        raise ParamError(f'vehicle {name!r}: no {path}; known vehicles: '
+                         f'{", ".join(vehicle_names(config)) or "none"}')
+    return path
+
+
+def load_vehicle(vehicle: str | os.PathLike | None = None,
+                 config: str | os.PathLike | None = None) -> VehicleParams:
+    """The controller's vehicle parameters: a vehicle name, a YAML file, or the default vehicle."""
+    if vehicle is None or (isinstance(vehicle, str) and not vehicle.endswith('.yaml')):
+        path = vehicle_file(vehicle, config)
+    else:
+        path = Path(vehicle)
     return from_dict(VehicleParams, load_yaml(path), f'{path.name}')
 
 

@@ -431,32 +431,16 @@ def load_path(raw: dict, where: str = 'path') -> Path:
                     _number(raw, 'smoothing', where, 0.0), **kw)
 
 
-def load_scenario_path(cfg_dir, scenario: str = '', path_file: str = '') -> Path:
-    """The path of a run: ``path_file``, else the ``path:`` of ``scenarios/<scenario>.yaml``.
-
-    The scenario's ``path:`` is either the path mapping itself or the name of a file under
-    ``<cfg_dir>/paths/`` (with or without ``.yaml``). A path file holds a ``path:`` mapping.
-    """
-    cfg_dir = os.fspath(cfg_dir)
-    if not path_file:
-        if not scenario:
-            raise ParamError('give a scenario (with a path: section) or a path_file')
-        where = f'scenarios/{scenario}.yaml'
-        section = load_yaml(os.path.join(cfg_dir, 'scenarios', f'{scenario}.yaml')).get('path')
-        if isinstance(section, dict):
-            return load_path(section, f'{where}: path')
-        if not isinstance(section, str):
-            raise ParamError(f'{where}: path: missing (a mapping or a file under paths/)')
-        path_file = os.path.join(cfg_dir, 'paths', section if section.endswith('.yaml')
-                                 else f'{section}.yaml')
-    raw = load_yaml(path_file)
+def load_path_file(file: str | os.PathLike) -> Path:
+    """A path file: a ``path:`` mapping (or the mapping itself); named after the file."""
+    raw = load_yaml(file)
     raw = raw.get('path', raw)
     if not isinstance(raw, dict):
-        raise ParamError(f'{path_file}: path: expected a mapping')
+        raise ParamError(f'{file}: path: expected a mapping')
     raw = dict(raw)
-    raw.setdefault('name', os.path.splitext(os.path.basename(path_file))[0])
-    return load_path(raw, os.path.basename(path_file))
+    raw.setdefault('name', os.path.splitext(os.path.basename(file))[0])
+    return load_path(raw, os.path.basename(file))
 
 
 __all__ = ['Path', 'SideslipProfile', 'alternating', 'circle', 'figure8', 'from_segments',
-           'load_path', 'load_scenario_path', 'polyline', 'wrap_angle']
+           'load_path', 'load_path_file', 'polyline', 'wrap_angle']

@@ -263,7 +263,7 @@ def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium
     and the moving sideslip together would turn the course by the whole sideslip change (the
     flip's lateral overshoot: 4.4 m without, 0.6 m with). The rate is a central difference
     along the stages. Applied while a flip is in the horizon; the entry ramp's rate (~0.1 rad/s)
-    is left out: with it the semi-automated entry of one seed spun (measured, not understood).
+    is left out (docs/tuning_log.md).
     """
     beta = [e.beta for e in stages]
     n = len(beta)

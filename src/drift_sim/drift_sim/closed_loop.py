@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drift_control.params import ParamError, config_dir, load_surface, load_vehicle
-from drift_control.reference import (ReferenceSelector, check_horizon_spacing,
-                                     load_reference_params)
+from drift_control.assembly import load_setup
+from drift_control.params import config_dir
 from drift_control.signals import Command, Mode
 from drift_sim import metrics
 from drift_sim.scenario import load_scenario
@@ -43,17 +42,10 @@ class NmpcController:
     scenario's actual one: a ``--set surface.mu=...`` is a friction the controller does not know.
     """
 
-    def __init__(self, cfg: Path, torque_only: bool, surface: str, supervised: bool = True):
-        from drift_control.nmpc import STATE_NAMES, Nmpc   # imported when used: heavy
-        from drift_control.ocp import load_nmpc_params
-        from drift_control.supervisor import load_supervisor_params
-        params = load_nmpc_params(cfg / 'nmpc.yaml')
-        mode = Mode.TORQUE_ONLY if torque_only else Mode.FULL
-        mu = load_surface(surface, cfg / 'vehicle' / 'surfaces.yaml').mu
-        supervisor = load_supervisor_params(cfg / 'supervisor.yaml') if supervised else None
-        self.nmpc = Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'), params, mode, mu,
-                         supervisor)
-        self.period = params.Ts
+    def __init__(self, setup, supervised: bool = True):
+        from drift_control.nmpc import STATE_NAMES   # imported when used: heavy
+        self.nmpc = setup.build_nmpc(supervised=supervised)
+        self.period = setup.nmpc.Ts
         self.trip_time: float | None = None   # when the supervisor latched the fallback [s]
         self._delta_col = STATE_NAMES.index('delta')
         self.plan_delta = math.nan
@@ -75,13 +67,12 @@ class SingleTrackSim:
     friction field, no noise. If a scenario fails here too, the cause is not the simulator.
     """
 
-    def __init__(self, loaded, cfg: Path):
+    def __init__(self, loaded, vehicle):
         from drift_control.frenet import Frenet
         from drift_control.model_plant import ModelPlant
         from drift_control.vehicle import NX, X
         from drift_sim.scenario import initial_pose
         self.loaded, self.scenario = loaded, loaded.scenario
-        vehicle = load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml')
         self.plant = ModelPlant(vehicle, mu=self.scenario.mu, seed=self.scenario.seed)
         self.plant.seed, self.plant.model = self.scenario.seed, None
         self.dt, self.commands_lost = 0.01, 0
@@ -123,7 +114,8 @@ class SingleTrackSim:
 def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                     controller: str = 'nmpc', plant: str = 'double_track',
                     config: str | Path | None = None, progress: bool = False,
-                    stop_on_spin: bool = False, supervised: bool = True) -> tuple[dict, dict]:
+                    stop_on_spin: bool = False, supervised: bool = True,
+                    vehicle: str | None = None) -> tuple[dict, dict]:
     """Run a scenario's closed loop in this process; returns (metrics, time series).
 
     Parameters
@@ -140,23 +132,17 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     supervised : bool
         Run the NMPC with its supervisor (``config/supervisor.yaml``); False shows what the
         controller does when nothing stops it (the paper's spin with a weak steering).
+    vehicle : str, optional
+        Overrides the scenario's vehicle (``config/vehicle/<name>.yaml``).
     """
     cfg = Path(config) if config else config_dir()
-    loaded = load_scenario(scenario, list(overrides), cfg, seed=seed)
+    setup = load_setup(cfg, scenario, vehicle, overrides, seed)
+    loaded = load_scenario(scenario, config=cfg, spec=setup.scenario)
     sc = loaded.scenario
-    from drift_control.eqmap import load_map
-    if not sc.map_file:
-        raise ParamError(f'scenario {sc.name}: no map_file')
-    lookup = load_map(str(cfg.parent / sc.map_file)).lookup
-    selector = ReferenceSelector(lookup, loaded.path,
-                                 load_reference_params(cfg / 'reference.yaml'))
-    selector.reset(s_hint=sc.initial.s)   # on a path that passes itself, start where the car is
-    if controller != 'feedforward':   # before the NMPC is built (and compiled)
-        from drift_control.ocp import load_nmpc_params
-        check_horizon_spacing(selector.p, load_nmpc_params(cfg / 'nmpc.yaml').dt)
+    selector = setup.build_selector()
     ctrl = (Feedforward() if controller == 'feedforward' else
-            NmpcController(cfg, sc.control_mode == 'torque_only', sc.surface.name, supervised))
-    sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, cfg)
+            NmpcController(setup, supervised))
+    sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, setup.vehicle)
     every = max(1, int(round(ctrl.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
 
@@ -218,7 +204,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                                                sc.metrics.steady))
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_plan'], data['delta'],
                                                sc.metrics.steady, name='steer_plan'))
-    out.update(scenario=sc.name, seed=sim.plant.seed, controller=controller,
+    out.update(scenario=sc.name, vehicle=sc.vehicle, seed=sim.plant.seed, controller=controller,
                overrides=list(overrides), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=plant,
                plant_jit=bool(sim.plant.model and sim.plant.model.jit))

@@ -1,4 +1,4 @@
-"""Plant parameters: ``config/sim/plant.yaml`` loaded into frozen, validated dataclasses.
+"""Plant parameters: ``config/sim/plants/<vehicle>.yaml`` loaded into frozen, validated dataclasses.
 
 The plant has its own parameter set (per-wheel tyres, track widths, powertrain, steering system,
 road, sensors), deliberately different from the controller's ``config/vehicle`` so that the
@@ -12,10 +12,10 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
 
-from drift_control.params import (CombinedTyreParams, ParamError, config_dir, from_dict,
-                                  load_yaml, require)
+from drift_control.params import (CombinedTyreParams, ParamError, config_dir,  # noqa: F401
+                                  default_vehicle, from_dict, load_yaml, merge, require, set_key,
+                                  split_override)
 
 SIGNALS = ('V', 'beta', 'r', 'vx', 'vy', 'ax', 'ay', 'wheel_speeds', 'delta', 'steering_torque',
            'drive_torque', 'pose', 'yaw')
@@ -156,7 +156,7 @@ class SignalNoise:
 
 @dataclass(frozen=True)
 class PlantParams:
-    """Everything the plant needs, from ``config/sim/plant.yaml``."""
+    """Everything the plant needs, from ``config/sim/plants/<vehicle>.yaml``."""
 
     dt: float
     substeps: int
@@ -182,56 +182,25 @@ class PlantParams:
         return self.dt * self.substeps
 
 
-def plant_yaml(config: str | os.PathLike | None = None) -> dict:
-    """The raw mapping of ``config/sim/plant.yaml`` under ``config`` (default: the project's)."""
-    return load_yaml(Path(config or config_dir()) / 'sim' / 'plant.yaml')
+def plant_file(vehicle: str | None = None, config: str | os.PathLike | None = None) -> Path:
+    """``config/sim/plants/<vehicle>.yaml``: the simulator's car for a vehicle of ``config/vehicle``."""
+    vehicle = vehicle or default_vehicle(config)
+    path = Path(config or config_dir()) / 'sim' / 'plants' / f'{vehicle}.yaml'
+    if not path.is_file():
+        raise ParamError(f'vehicle {vehicle!r}: no simulator plant {path} (the double-track '
+                         'model of the car; see docs/bring_your_own_car.md)')
+    return path
 
 
-def load_plant_params(raw: dict | None = None, overrides=(), config=None) -> PlantParams:
-    """Validate a plant mapping (default: ``plant_yaml(config)``) after ``key=value`` overrides."""
-    raw = copy.deepcopy(raw if raw is not None else plant_yaml(config))
+def plant_yaml(config: str | os.PathLike | None = None, vehicle: str | None = None) -> dict:
+    """The raw mapping of a vehicle's plant file (default: the default vehicle's)."""
+    return load_yaml(plant_file(vehicle, config))
+
+
+def load_plant_params(raw: dict | None = None, overrides=(), config=None,
+                      vehicle: str | None = None) -> PlantParams:
+    """Validate a plant mapping (default: the vehicle's plant file) after ``key=value`` overrides."""
+    raw = copy.deepcopy(raw if raw is not None else plant_yaml(config, vehicle))
     for item in overrides:
         set_key(raw, *split_override(item), where='plant')
     return from_dict(PlantParams, raw, 'plant')
-
-
-def split_override(item: str) -> tuple[str, object]:
-    """``'a.b=1.5'`` -> ``('a.b', 1.5)``; the value is parsed as YAML (numbers, lists, bools)."""
-    if '=' not in item:
-        raise ParamError(f'override {item!r}: expected key=value')
-    key, text = item.split('=', 1)
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ParamError(f'override {item!r}: value is not valid YAML: {err}') from None
-    return key.strip(), value
-
-
-def set_key(raw: dict, dotted: str, value, where: str = '') -> None:
-    """Set ``raw[a][b][c] = value`` for ``dotted = 'a.b.c'``; intermediate maps must exist.
-
-    A key that does not exist at its level is still set (the validator then names it if it is
-    wrong), but an intermediate that is not a mapping is an error.
-    """
-    parts = dotted.split('.')
-    node = raw
-    for i, part in enumerate(parts[:-1]):
-        nxt = node.get(part)
-        if nxt is None:
-            nxt = node[part] = {}
-        if not isinstance(nxt, dict):
-            raise ParamError(f"{where}: override {dotted}: {'.'.join(parts[:i + 1])} is not a "
-                             'mapping')
-        node = nxt
-    node[parts[-1]] = value
-
-
-def merge(base: dict, extra: dict) -> dict:
-    """Deep merge of two mappings (``extra`` wins); neither is modified."""
-    out = copy.deepcopy(base)
-    for key, value in (extra or {}).items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out

@@ -50,7 +50,7 @@ def _stamp(msg) -> float:
 
 
 def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | None = None,
-                     config=None, nmpc=None) -> RerunResult:
+                     config=None, nmpc=None, vehicle: str | None = None) -> RerunResult:
     """Step the NMPC on the bag's states and references at its command times.
 
     Parameters
@@ -62,6 +62,8 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
         Surface whose friction the NMPC assumes (default: the scenario's, else 'dry').
     config : Path, optional
         Config directory (default: the checkout's).
+    vehicle : str, optional
+        The car the run drove (default: ``config/defaults.yaml``'s).
     nmpc : drift_control.nmpc.Nmpc, optional
         A ready controller (tests); built from the config otherwise.
     """
@@ -74,7 +76,7 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
     if missing:
         raise ValueError(f'{bag_dir}: nothing recorded on {missing}: cannot re-run the controller')
     if nmpc is None:
-        nmpc = _build_nmpc(control_mode, surface, config)
+        nmpc = _build_nmpc(control_mode, surface, config, vehicle)
     states = sorted((_stamp(m.msg), m.msg) for m in messages[STATE])
     refs = sorted((_stamp(m.msg), m.msg) for m in messages[REFERENCE])
     state_t = np.array([t for t, _ in states])
@@ -107,18 +109,9 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
                        peak(d_torque), mode_mismatches, not_ok)
 
 
-def _build_nmpc(control_mode: str, surface: str | None, config):
-    from drift_control.nmpc import Nmpc
-    from drift_control.ocp import load_nmpc_params
-    from drift_control.params import config_dir, load_surface, load_vehicle
-    from drift_control.signals import Mode
-
-    modes = {'full': Mode.FULL, 'torque_only': Mode.TORQUE_ONLY}
-    if control_mode not in modes:
-        raise ValueError(f'control_mode must be one of {list(modes)}, got {control_mode!r}')
-    cfg = Path(config) if config else config_dir()
-    mu = load_surface(surface or 'dry', cfg / 'vehicle' / 'surfaces.yaml').mu
-    from drift_control.supervisor import load_supervisor_params
-    return Nmpc(load_vehicle(cfg / 'vehicle' / 'm3_competition.yaml'),
-                load_nmpc_params(cfg / 'nmpc.yaml'), modes[control_mode], mu=mu,
-                supervisor=load_supervisor_params(cfg / 'supervisor.yaml'))
+def _build_nmpc(control_mode: str, surface: str | None, config, vehicle: str | None):
+    from drift_control.assembly import MODES, load_setup
+    if control_mode not in MODES:
+        raise ValueError(f'control_mode must be one of {list(MODES)}, got {control_mode!r}')
+    setup = load_setup(config, vehicle=vehicle, surface=surface or 'dry', with_map=False)
+    return setup.build_nmpc(MODES[control_mode])

@@ -19,6 +19,7 @@ from drift_control.params import ParamError, load_yaml
 CLOCK_MODES = ('realtime', 'lockstep')
 DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
 RECORDER_MODULE = 'drift_tools.nodes.recorder_node'
+SIM_MODULE = 'drift_sim.nodes.sim_node'
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,8 @@ class RunOptions:
     domain_id: int = 0
     discovery_range: str = 'LOCALHOST'
     python: str = sys.executable
+    sim_duration: float = 0.0              # simulated seconds the simulator runs; 0: scenario's
+    vehicle: str = ''                      # '' = not passed; the scenario's, else the default
     extra_params: dict = field(default_factory=dict)   # name -> value, for every node
 
     def __post_init__(self):
@@ -121,6 +124,8 @@ class RunOptions:
         if self.discovery_range not in DISCOVERY_RANGES:
             raise ParamError(f'discovery range: must be one of {list(DISCOVERY_RANGES)}, '
                              f'got {self.discovery_range!r}')
+        if not (self.sim_duration >= 0.0 and self.sim_duration < float('inf')):
+            raise ParamError(f'sim duration: must be >= 0 s, got {self.sim_duration}')
         if not 0 <= self.domain_id <= 232:
             raise ParamError(f'ROS_DOMAIN_ID: must be in 0..232, got {self.domain_id}')
 
@@ -147,8 +152,12 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim') -> 
     }
     if opts.scenario:                # else each node keeps its own default
         params['scenario'] = opts.scenario
+    if opts.vehicle:
+        params['vehicle'] = opts.vehicle
     if owns_clock:
         params['clock_mode'] = opts.clock
+    if spec.module == SIM_MODULE and opts.sim_duration:
+        params['duration'] = float(opts.sim_duration)
     if spec.module == RECORDER_MODULE and opts.bag_dir is not None:
         params['bag_dir'] = str(opts.bag_dir)
     params.update(opts.extra_params)

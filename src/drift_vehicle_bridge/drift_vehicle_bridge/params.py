@@ -5,9 +5,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
-from drift_control.params import ParamError, config_dir, from_dict, load_yaml, require
+from drift_control.params import (ParamError, config_dir, from_dict, load_vehicle, load_yaml,
+                                  merge, require)
 
 
 # python-can interfaces that cannot reach a vehicle: the only ones auto_arm is allowed on.
@@ -127,51 +126,37 @@ class BridgeParams:
                 f'not on {self.bus.interface!r}')
 
 
-def parse_overrides(items) -> dict:
-    """``['mode.arm_envelope.beta_max=0.6', ...]`` -> ``{'mode': {'arm_envelope': {...}}}``.
-
-    Values are YAML (numbers, booleans, lists); empty items are ignored. The merged result is
-    validated by ``load_bridge_params`` like the file, so a typo is a ParamError naming the key.
-    """
-    out: dict = {}
-    for item in items or ():
-        if not item:
-            continue
-        key, sep, text = item.partition('=')
-        if not sep or not key.strip():
-            raise ParamError(f'bridge override {item!r}: expected key=value')
-        try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError as err:
-            raise ParamError(f'bridge override {item!r}: value is not valid YAML: {err}') from None
-        *path, leaf = key.strip().split('.')
-        node = out
-        for part in path:
-            node = node.setdefault(part, {})
-        node[leaf] = value
-    return out
-
-
 def load_bridge_params(cfg_dir: str | os.PathLike | None = None,
-                       overrides: dict | None = None) -> BridgeParams:
+                       overrides: dict | None = None,
+                       vehicle: str | None = None) -> BridgeParams:
     """Load ``bridge.yaml`` from ``cfg_dir`` (default: the project's config directory).
 
     ``overrides`` is merged per section (``{'bus': {'channel': 'vcan0'}}``) before validation,
-    so a node parameter gets the same checks as the file.
+    so a node parameter gets the same checks as the file. The command limits come from the
+    vehicle's (``config/vehicle/<vehicle>.yaml`` limits, default vehicle when None): bridge.yaml
+    may set a tighter one, never a wider one.
     """
     cfg_dir = Path(cfg_dir) if cfg_dir else config_dir()
-    raw = load_yaml(cfg_dir / 'bridge.yaml')
-    _merge(raw, overrides or {})
+    raw = merge(load_yaml(cfg_dir / 'bridge.yaml'), overrides)
+    limits = raw.get('limits') or {}
+    if isinstance(limits, dict):
+        raw['limits'] = {**vehicle_limits(load_vehicle(vehicle, cfg_dir).limits, limits), **limits}
     return from_dict(BridgeParams, raw, 'bridge')
 
 
-def _merge(raw: dict, overrides: dict) -> None:
-    """Merge ``overrides`` into ``raw`` recursively (sections stay, leaves are replaced)."""
-    for key, value in overrides.items():
-        if isinstance(value, dict) and isinstance(raw.get(key), dict):
-            _merge(raw[key], value)
-        else:
-            raw[key] = value
+def vehicle_limits(lim, tighter: dict) -> dict:
+    """The bridge's command limits of a vehicle's ``ActuatorLimits``; ``tighter`` values must
+    lie within them (a ParamError names the key otherwise)."""
+    own = {'delta_max': lim.delta_max, 'delta_rate_max': lim.delta_dot_max,
+           'torque_min': lim.T_R_min, 'torque_max': lim.T_R_max}
+    for key, value in tighter.items():
+        if key not in own or isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue   # the validator names unknown keys and non-numbers
+        wider = value < own[key] if key == 'torque_min' else value > own[key]
+        if wider:
+            raise ParamError(f'bridge.limits.{key}: {value} is beyond the vehicle\'s own limit '
+                             f'{own[key]} (config/vehicle): the bridge may only tighten it')
+    return own
 
 
 def dbc_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> Path:

@@ -1,5 +1,4 @@
 """NMPC node: vehicle/state + drift/reference -> Nmpc.step -> drift/command, status, diagnostics."""
-import os
 import sys
 import time
 
@@ -10,16 +9,12 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.time import Time
 
-from drift_control.nmpc import LockstepTrigger, Nmpc
+from drift_control.assembly import MODES, load_setup
+from drift_control.nmpc import LockstepTrigger
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
 from drift_control.nodes.spin import run_node
-from drift_control.ocp import load_nmpc_params
-from drift_control.params import ParamError, config_dir, load_surface, load_vehicle, load_yaml
-from drift_control.signals import Mode
-from drift_control.supervisor import load_supervisor_params
-
-MODES = {'full': Mode.FULL, 'torque_only': Mode.TORQUE_ONLY}
+from drift_control.params import ParamError, config_dir
 REALTIME_REFERENCE_WAIT = 0.005   # trigger: state, wall time [s]
 LOCKSTEP_REFERENCE_WAIT = 1.0
 LEVEL = {Status.OK: DiagnosticStatus.OK, Status.SHIFTED: DiagnosticStatus.WARN,
@@ -33,19 +28,17 @@ class NmpcNode(Node):
         super().__init__('nmpc')
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         scenario = self.declare_parameter('scenario', '').value
+        vehicle = self.declare_parameter('vehicle', '').value      # '' = the scenario's
+        overrides = [o for o in self.declare_parameter('set', ['']).value if o]
         mode = self.declare_parameter('control_mode', '').value   # '' = the scenario's, else full
         trigger = self.declare_parameter('trigger', 'timer').value
-        scen = load_yaml(os.path.join(cfg, 'scenarios', f'{scenario}.yaml')) if scenario else {}
-        mode = mode or scen.get('control_mode', 'full')
-        if mode not in MODES or trigger not in ('timer', 'state'):
+        if mode not in ('', *MODES) or trigger not in ('timer', 'state'):
             raise ParamError(f'nmpc node: control_mode {mode!r} not in {list(MODES)} or trigger '
                              f"{trigger!r} not in ['timer', 'state']")
-        surface = load_surface((scen.get('surface') or {}).get('name', 'dry'),
-                               os.path.join(cfg, 'vehicle', 'surfaces.yaml'))
-        params = load_nmpc_params(os.path.join(cfg, 'nmpc.yaml'))
-        vehicle = load_vehicle(os.path.join(cfg, 'vehicle', 'm3_competition.yaml'))
-        supervisor = load_supervisor_params(os.path.join(cfg, 'supervisor.yaml'))
-        self._nmpc = Nmpc(vehicle, params, MODES[mode], mu=surface.mu, supervisor=supervisor)
+        setup = load_setup(cfg, scenario, vehicle or None, overrides, with_map=False)
+        params, surface = setup.nmpc, setup.surface
+        mode = mode or (setup.scenario.control_mode if setup.scenario else 'full')
+        self._nmpc = setup.build_nmpc(MODES[mode])
         self._state = self._ref = self._last = None
         command_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
@@ -66,7 +59,8 @@ class NmpcNode(Node):
         else:   # wall clock: sim time stands still while the simulator waits for us
             self.create_timer(0.002, self._poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f'{mode} on {surface.name} (mu {surface.mu:g}), trigger {trigger}, '
+        self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} (mu {surface.mu:g}), '
+                               f'trigger {trigger}, '
                                f'solver {params.solver.method}/{params.solver.qp_solver}')
 
     def _on_state(self, msg):

@@ -28,13 +28,19 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     error can also come just before the shutdown lands (a take failed that way). An exception
     caused by the interrupt, or followed by the shutdown within ``SHUTDOWN_GRACE_S``, is the end
     of the run, not a failure; any other is raised (that much later). The node's ``close()``, if it
-    has one, runs before the node is destroyed (flush a bag, release a CAN bus).
+    has one, runs before the node is destroyed (flush a bag, release a CAN bus). A node with a
+    ``finished`` future (the simulator at the end of its scenario) ends the run, exit 0, when
+    it completes.
     """
     rclpy.init(args=args)
     node, code = None, 0
     try:
         node = factory()
-        rclpy.spin(node)
+        finished = getattr(node, 'finished', None)
+        if finished is None:
+            rclpy.spin(node)
+        else:
+            rclpy.spin_until_future_complete(node, finished)
     except ParamError as err:
         rclpy.logging.get_logger(name).error(str(err))
         code = 1

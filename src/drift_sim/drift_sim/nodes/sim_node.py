@@ -4,11 +4,13 @@ import time
 
 from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
 from rclpy.node import Node
+from rclpy.task import Future
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
 from drift_control.nodes import convert
 from drift_control.nodes.spin import run_node
+from drift_control.pacing import Pacer
 from drift_control.params import config_dir
 from drift_sim.lockstep import LockstepGate
 from drift_sim.scenario import load_scenario
@@ -29,9 +31,11 @@ class SimNode(Node):
         super().__init__('sim')
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         scenario = self.declare_parameter('scenario', 'steady_dry').value
+        vehicle = self.declare_parameter('vehicle', '').value      # '' = the scenario's
         seed = self.declare_parameter('seed', -1).value
         self._mode = self.declare_parameter('clock_mode', 'realtime').value
-        overrides = self.declare_parameter('set', ['']).value
+        overrides = [o for o in self.declare_parameter('set', ['']).value if o]
+        duration = self.declare_parameter('duration', 0.0).value   # sim time [s]; 0: scenario's
         period = self.declare_parameter('command_period', 0.02).value
         timeout = self.declare_parameter('lockstep_timeout', 1.0).value
         startup = self.declare_parameter('startup_timeout', 120.0).value
@@ -42,14 +46,18 @@ class SimNode(Node):
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
         if self._mode not in ('realtime', 'lockstep'):
             raise ValueError(f"clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
-        loaded = load_scenario(scenario, [o for o in overrides if o], cfg,
-                               seed=None if seed < 0 else seed)
+        if duration > 0.0:
+            overrides.append(f'duration={duration!r}')
+        loaded = load_scenario(scenario, overrides, cfg, seed=None if seed < 0 else seed,
+                               vehicle=vehicle or None)
         self._sim = Simulator(loaded)
         self._gate = LockstepGate(self._sim.dt, period, timeout, startup, wait_reference)
         self._command = None
+        self._pacer = Pacer(self._sim.dt)    # real time: every 10 ms step runs, late or not
         self._offered = time.monotonic()
         self._reported = 0
         self._can = None
+        self.finished = Future()   # done when the scenario's time is up: the run ends there
         if io == 'can':
             from drift_sim.can_vehicle import CanVehicle
             from drift_vehicle_bridge.vehicle_side import CarSide
@@ -69,7 +77,8 @@ class SimNode(Node):
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
         self.create_timer(tick, self._on_tick)
-        self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), seed '
+        self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), vehicle '
+                               f'{loaded.scenario.vehicle}, seed '
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
 
     def close(self) -> None:
@@ -85,6 +94,9 @@ class SimNode(Node):
 
     def _on_tick(self):
         if self._sim.done:
+            if not self.finished.done():
+                self.get_logger().info(f'scenario finished at t = {self._sim.t:.2f} s')
+                self.finished.set_result(True)
             return
         if self._mode == 'lockstep':
             if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
@@ -104,12 +116,20 @@ class SimNode(Node):
                                               throttle_duration_sec=2.0)
                 self._publish(self._sim.step(self._command))
             return
-        if self._can is not None:
-            self._can.step(time.monotonic())
-            self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state,
-                                                         self.get_clock().now()))
-            return
-        self._publish(self._sim.step(self._command))
+        skipped = self._pacer.skipped
+        for _ in range(self._pacer.due(time.monotonic())):
+            if self._sim.done:
+                break
+            if self._can is not None:
+                self._can.step(time.monotonic())
+                self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state,
+                                                             self.get_clock().now()))
+            else:
+                self._publish(self._sim.step(self._command))
+        if self._pacer.skipped != skipped:
+            self.get_logger().warning(f'real time: stalled, {self._pacer.skipped} steps of '
+                                      f'{1e3 * self._sim.dt:g} ms dropped so far',
+                                      throttle_duration_sec=2.0)
 
     def _publish(self, state):
         if self._mode == 'lockstep':

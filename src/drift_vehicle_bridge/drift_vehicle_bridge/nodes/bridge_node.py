@@ -10,11 +10,13 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.nodes.spin import run_node
-from drift_control.params import config_dir
+from drift_control.pacing import Pacer
+from drift_control.params import config_dir, parse_overrides
+from drift_control.scenario import load_scenario_spec
 from drift_vehicle_bridge.codec import Codec
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.nodes import convert
-from drift_vehicle_bridge.params import dbc_path, load_bridge_params, parse_overrides
+from drift_vehicle_bridge.params import dbc_path, load_bridge_params
 from drift_vehicle_bridge.replay import LogReplay
 
 
@@ -24,18 +26,21 @@ class BridgeNode(Node):
     def __init__(self, **kwargs):
         super().__init__('vehicle_bridge', **kwargs)
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
-        self.declare_parameter('scenario', '')
+        scenario = self.declare_parameter('scenario', '').value
+        vehicle = self.declare_parameter('vehicle', '').value   # limits: '' = the scenario's car
+        if not vehicle and scenario:
+            vehicle = load_scenario_spec(scenario, config=cfg).vehicle
         bus = {'interface': self.declare_parameter('interface', '').value,
                'channel': self.declare_parameter('channel', '').value,
                'bitrate': self.declare_parameter('bitrate', 0).value}
         bus = {k: v for k, v in bus.items() if v}    # '' / 0: keep config/bridge.yaml's
         log_file = self.declare_parameter('log_file', '').value
         auto_arm = self.declare_parameter('auto_arm', False).value   # virtual/udp_multicast only
-        overrides = parse_overrides(self.declare_parameter('set', ['']).value)
+        overrides = parse_overrides(self.declare_parameter('set', ['']).value, 'bridge')
         overrides.setdefault('bus', {}).update(bus)
         if auto_arm:
             overrides['auto_arm'] = True
-        params = load_bridge_params(cfg, overrides)
+        params = load_bridge_params(cfg, overrides, vehicle or None)
         codec = Codec.load(dbc_path(params, cfg))
         self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params)
         self._replay = LogReplay(log_file) if log_file else None
@@ -47,6 +52,7 @@ class BridgeNode(Node):
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.create_service(SetBool, 'bridge/arm', self._on_arm)
+        self._pacer = Pacer(params.cycle_time)   # every bus cycle runs, even after a late timer
         self.create_timer(params.cycle_time, self._on_tick)
         self.create_timer(self._diag_period, self._on_diag)
         self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}'
@@ -65,11 +71,13 @@ class BridgeNode(Node):
         return response
 
     def _on_tick(self):
-        now = time.monotonic()
-        for msg in self._replay.due(now) if self._replay else ():
-            self._gw.receive(msg, now)
-        state = self._gw.step(now)
-        if state is not None:
+        state = None
+        for _ in range(self._pacer.due(time.monotonic())):   # bus cycles run even when late
+            now = time.monotonic()
+            for msg in self._replay.due(now) if self._replay else ():
+                self._gw.receive(msg, now)
+            state = self._gw.step(now)
+        if state is not None:   # the newest state once: a catch-up cycle brings no new frames
             self._state_pub.publish(convert.state_to_msg(state, self.get_clock().now().to_msg()))
 
     def _on_diag(self):
