@@ -26,7 +26,7 @@ import numpy as np
 from drift_control.equilibrium import solve_equilibrium
 from drift_control.nmpc import Nmpc, reference_rows
 from drift_control.ocp import NXO, NmpcParams, Ocp, load_nmpc_params
-from drift_control.assembly import map_file
+from drift_control.assembly import load_checked_map, map_file
 from drift_control.params import ParamError, load_surface, load_vehicle, vehicle_file
 from drift_control.signals import Command, Direction, Mode, Reference, VehicleState
 from drift_control.vehicle import VehicleModel
@@ -37,9 +37,9 @@ BUDGET = 0.02   # control period [s]
 def reference_equilibrium(name: str, vehicle, surface: str, beta_deg: float, radius: float):
     """The vehicle's map equilibrium when its map exists, else solved directly."""
     npz = map_file(name, surface).with_suffix('.npz')
-    if npz.exists():
-        from drift_control.eqmap import load_map
-        eq, _ = load_map(npz, vehicle).lookup(math.radians(beta_deg), radius, Direction.LEFT)
+    if npz.exists():   # stale: a ParamError naming the rebuild command
+        eqmap = load_checked_map(name, vehicle, load_surface(surface))
+        eq, _ = eqmap.lookup(math.radians(beta_deg), radius, Direction.LEFT)
         return eq, f'map {npz}'
     mu = load_surface(surface).mu
     return solve_equilibrium(math.radians(-beta_deg), radius, vehicle, mu=mu).eq, 'solved'
@@ -240,10 +240,10 @@ def main(argv=None) -> int:
         name = vehicle_file(args.vehicle).stem
         vehicle, params = load_vehicle(name), load_nmpc_params()
         mu = load_surface(args.surface).mu
+        eq, source = reference_equilibrium(name, vehicle, args.surface, args.beta_deg, args.radius)
     except ParamError as err:
         print(f'bench_nmpc: {err}', file=sys.stderr)
         return 2
-    eq, source = reference_equilibrium(name, vehicle, args.surface, args.beta_deg, args.radius)
     load = os.getloadavg()
     print(f'{name}: {args.beta_deg:g} deg drift on R {args.radius:g} m, {args.surface} (mu {mu:g}, plant '
           f'{0.95 * mu:.3f}), reference {source}; {os.cpu_count()} cores, load '

@@ -2,7 +2,7 @@
 """Fit the controller's tyre forms to a TNO MF-Tyre .tir file and write them into a vehicle YAML.
 
     .venv/bin/python scripts/fit_tyres.py --tir config/tyres/pacejka_book_205_60r15.tir \\
-        --vehicle m3_competition --dry-run
+        --vehicle gr86 --dry-run
     .venv/bin/python scripts/fit_tyres.py --tir FILE --vehicle NAME [--axle front|rear|both]
 
 Prints the fit report (per axle: region, RMS and largest error, the drift point on the dry and the
@@ -59,6 +59,10 @@ def main(argv=None) -> int:
         return 2
     except OSError as err:
         print(f'fit_tyres: {err}', file=sys.stderr)
+        return 2
+    except (ValueError, ArithmeticError) as err:   # a tyre whose forces are not finite
+        print(f'fit_tyres: {args.tir}: the fit failed ({type(err).__name__}: {err})',
+              file=sys.stderr)
         return 2
     return 0
 

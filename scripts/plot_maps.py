@@ -18,9 +18,10 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from drift_control.assembly import map_file  # noqa: E402
-from drift_control.eqmap import KINDS, load_map  # noqa: E402
-from drift_control.params import ParamError, default_vehicle, load_vehicle, vehicle_file  # noqa: E402
+from drift_control.assembly import load_checked_map  # noqa: E402
+from drift_control.eqmap import KINDS  # noqa: E402
+from drift_control.params import (ParamError, default_vehicle, load_surface,  # noqa: E402
+                                  load_vehicle, vehicle_file)
 
 ROOT = Path(__file__).resolve().parents[1]
 # (field, colour, marker size, label); the rear marker is drawn larger so a coinciding front
@@ -30,7 +31,7 @@ PEAKS = (('F_yR', 'cyan', 10, 'peak rear lateral force'), ('F_yF', 'teal', 6,
 
 
 def plot(vehicle: str, surface: str, radii: list[float], out: Path) -> None:
-    m = load_map(map_file(vehicle, surface), load_vehicle(vehicle))
+    m = load_checked_map(vehicle, load_vehicle(vehicle), load_surface(surface))
     beta_deg = np.degrees(m.beta_abs)
     d = m.data
     panels = [('(a) $F_{yF}^{eq}$ [kN]', lambda j: d['F_yF'][:, j] / 1e3),
@@ -99,8 +100,12 @@ def main(argv=None) -> int:
         print(f'plot_maps: {err}', file=sys.stderr)
         return 2
     suffix = '' if vehicle == default_vehicle() else f'_{vehicle}'
-    for surface in (('dry', 'wet') if args.surface == 'all' else (args.surface,)):
-        plot(vehicle, surface, radii, ROOT / 'docs' / f'maps_{surface}{suffix}.png')
+    try:
+        for surface in (('dry', 'wet') if args.surface == 'all' else (args.surface,)):
+            plot(vehicle, surface, radii, ROOT / 'docs' / f'maps_{surface}{suffix}.png')
+    except ParamError as err:
+        print(f'plot_maps: {err}', file=sys.stderr)
+        return 2
     return 0
 
 

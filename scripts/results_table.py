@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+from drift_control.params import default_vehicle
 from drift_sim.sweep import (LOST_BETA_RMS_DEG, LOST_E_Y_M, ROBUST, ROBUST_HIGH_MU,
                              ROBUST_LOW_MU, outcome, parse_seeds, run_seed, summarise)
 
@@ -122,10 +123,10 @@ def main(argv=None) -> int:
             parser.error(f'--only: no row or scenario {sorted(unknown)}')
         runs = [r for r in runs if r[0] in wanted or r[1] in wanted]
     if args.vehicle:
-        runs = [r for r in runs if _vehicle(r) == args.vehicle]
+        runs = [r for r in runs if (_vehicle(r) or default_vehicle()) == args.vehicle]
         if not runs:
             parser.error(f'--vehicle {args.vehicle}: no rows; rows name '
-                         f'{sorted({_vehicle(r) or "(scenario default)" for r in RUNS})}')
+                         f'{sorted({_vehicle(r) or default_vehicle() for r in RUNS})}')
     partial = len(runs) != len(RUNS)
     try:
         seeds = parse_seeds(args.seeds)

@@ -19,7 +19,8 @@ from pathlib import Path
 from drift_control.assembly import load_setup
 from drift_control.params import ParamError, config_dir, vehicle_file
 from drift_tools.launcher import Launcher
-from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, RunOptions,
+from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, SIM_MODULE,
+                               RunOptions,
                                load_stack, node_command, node_env, write_params_file)
 
 
@@ -86,8 +87,13 @@ def main(argv=None) -> int:
                           sim_duration=args.sim_duration,
                           vehicle=args.vehicle or '',
                           discovery_range=args.discovery_range)
+        if args.sim_duration and not any(n.module == SIM_MODULE for n in nodes):
+            raise ParamError(f'--sim-duration: graph {args.graph!r} has no simulator to end it')
         if opts.scenario:   # the controller's configuration and map, checked before any node
-            load_setup(cfg_dir, opts.scenario, opts.vehicle or None)
+            setup = load_setup(cfg_dir, opts.scenario, opts.vehicle or None)
+            if any(n.module == SIM_MODULE for n in nodes):   # and the simulator's car
+                from drift_sim.scenario import load_scenario
+                load_scenario(opts.scenario, config=cfg_dir, spec=setup.scenario)
     except ParamError as err:
         print(f'run_stack: {err}', file=sys.stderr)
         return 2

@@ -19,7 +19,7 @@ import multiprocessing
 import sys
 import time
 
-from drift_control.params import config_dir
+from drift_control.params import ParamError, config_dir, vehicle_file
 from drift_sim.sweep import format_summary, outcome, parse_seeds, run_seed, summarise
 
 
@@ -52,6 +52,10 @@ def main(argv=None) -> int:
     except ValueError as err:
         parser.error(str(err))
     if args.vehicle:
+        try:
+            vehicle_file(args.vehicle, args.config_dir)
+        except ParamError as err:
+            parser.error(str(err))
         args.set.append(f'vehicle={args.vehicle}')
     jobs = [(sc, tuple(args.set), seed, args.config_dir) for sc in args.scenario for seed in seeds]
     t0 = time.perf_counter()

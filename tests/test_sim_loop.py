@@ -21,14 +21,14 @@ def test_every_required_scenario_loads_with_its_path_and_plant():
     for name in SCENARIOS:
         loaded = load_scenario(name)
         assert loaded.path.length > 50.0
-        assert loaded.scenario.mu > 0.0
+        assert loaded.mu > 0.0
     eps = load_scenario('eps_limited_dry')
     assert eps.plant.steering.torque_max == 30.0 and eps.scenario.expect_spin
 
 
 def test_overrides_reach_surface_and_plant():
     loaded = load_scenario('steady_dry', ['surface.mu=0.55', 'plant.lsd.locking=1.0'])
-    assert loaded.scenario.mu == 0.55 and loaded.plant.lsd.locking == 1.0
+    assert loaded.mu == 0.55 and loaded.plant.lsd.locking == 1.0
     from drift_control.params import ParamError
     with pytest.raises(ParamError, match='surfce'):
         load_scenario('steady_dry', ['surfce.mu=0.5'])

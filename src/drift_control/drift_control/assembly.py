@@ -16,8 +16,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 
 from drift_control.ocp import NmpcParams, load_nmpc_params
-from drift_control.params import (ParamError, Surface, VehicleParams, config_dir, load_surface,
-                                  load_vehicle, load_yaml, params_hash, vehicle_file)
+from drift_control.params import (ParamError, Surface, VehicleParams, config_dir, load_defaults,
+                                  load_surface, load_vehicle, params_hash, vehicle_file)
 from drift_control.path import Path, load_path_file
 from drift_control.reference import (ReferenceParams, ReferenceSelector, check_horizon_spacing,
                                      load_reference_params)
@@ -31,10 +31,7 @@ MODES = {'full': Mode.FULL, 'torque_only': Mode.TORQUE_ONLY}
 def maps_dir(config: str | os.PathLike | None = None) -> FsPath:
     """Where maps live: ``maps:`` of ``config/defaults.yaml``, relative to the config dir."""
     config = FsPath(config or config_dir())
-    rel = load_yaml(config / 'defaults.yaml').get('maps', '../maps')
-    if not isinstance(rel, str) or not rel:
-        raise ParamError(f'{config / "defaults.yaml"}: maps: expected a directory, got {rel!r}')
-    return (config / rel).resolve()
+    return (config / load_defaults(config)['maps']).resolve()
 
 
 def map_file(vehicle: str, surface: str, config: str | os.PathLike | None = None) -> FsPath:

@@ -394,7 +394,7 @@ def _check_arrays(npz: Path, arrays: dict, meta: dict) -> None:
 
 def _check_hash(meta: dict, meta_path: Path, vehicle, surface, strict: bool) -> None:
     try:
-        vehicle = vehicle if vehicle is not None else load_vehicle()
+        vehicle = vehicle if vehicle is not None else load_vehicle(meta.get('vehicle'))
         surface = surface if surface is not None else load_surface(meta['surface'])
     except ParamError as err:
         raise MapError(f'{meta_path}: cannot load the parameters to check it: {err}') from None

@@ -304,16 +304,23 @@ class Surface:
         require(0 < self.mu <= 2.0, f'surface {self.name}.mu', f'must be in (0, 2], got {self.mu}')
 
 
-def default_vehicle(config: str | os.PathLike | None = None) -> str:
-    """The vehicle a run uses when neither its scenario nor the command line names one.
-
-    It is ``vehicle:`` in ``config/defaults.yaml``, the one place the default is written.
-    """
+def load_defaults(config: str | os.PathLike | None = None) -> dict:
+    """``config/defaults.yaml``: ``vehicle`` (the default car) and ``maps`` (where maps live,
+    relative to the config dir; default ``../maps``), both non-empty strings."""
     path = Path(config or config_dir()) / 'defaults.yaml'
-    name = load_yaml(path).get('vehicle')
-    if not isinstance(name, str) or not name:
-        raise ParamError(f'{path}: defaults.vehicle: expected a vehicle name, got {name!r}')
-    return name
+    raw = {'maps': '../maps', **load_yaml(path)}
+    unknown = sorted(set(raw) - {'vehicle', 'maps'})
+    if unknown:
+        raise ParamError(f'{path}: unknown key(s) {unknown}')
+    for key in ('vehicle', 'maps'):
+        if not isinstance(raw.get(key), str) or not raw[key]:
+            raise ParamError(f'{path}: {key}: expected a non-empty string, got {raw.get(key)!r}')
+    return raw
+
+
+def default_vehicle(config: str | os.PathLike | None = None) -> str:
+    """The vehicle a run uses when neither its scenario nor the command line names one."""
+    return load_defaults(config)['vehicle']
 
 
 def vehicle_names(config: str | os.PathLike | None = None) -> list[str]:

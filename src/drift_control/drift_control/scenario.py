@@ -94,7 +94,7 @@ class Scenario:
     expect_spin: bool = False            # the paper's outcome (eps_limited_dry: the car spins)
     faults: tuple[Fault, ...] = ()
     metrics: MetricWindows = field(default_factory=MetricWindows)
-    plant: dict[str, Any] = field(default_factory=dict)    # overrides of config/sim/plant.yaml
+    plant: dict[str, Any] = field(default_factory=dict)    # overrides of the vehicle's plant file
     driver: dict[str, Any] = field(default_factory=dict)   # overrides of config/sim/driver.yaml
 
     def __post_init__(self):
@@ -103,10 +103,6 @@ class Scenario:
             require(len(w) == 2 and w[0] < w[1], f'scenario {self.name}.metrics.steady',
                     'each window is [t0, t1] with t0 < t1')
 
-    @property
-    def mu(self) -> float:
-        """Mean friction of the surface [-]."""
-        return self.surface.mu if self.surface.mu > 0 else load_surface(self.surface.name).mu
 
 
 def scenario_file(name: str, config: str | os.PathLike | None = None) -> FsPath:
@@ -129,6 +125,14 @@ def resolve_path(section, config: FsPath, where: str) -> Path:
         raise ParamError(f'{where}.path: expected a mapping or a config/paths name')
     return load_path_file(config / 'paths' / (section if section.endswith('.yaml')
                                               else f'{section}.yaml'))
+
+
+def surface_mu(scenario: Scenario, config: str | os.PathLike | None = None) -> float:
+    """The scenario's mean friction: its ``surface.mu``, else its named surface's in ``config``."""
+    if scenario.surface.mu > 0:
+        return scenario.surface.mu
+    return load_surface(scenario.surface.name,
+                        FsPath(config or config_dir()) / 'vehicle' / 'surfaces.yaml').mu
 
 
 def load_scenario_spec(name: str, overrides=(), config: str | os.PathLike | None = None,
@@ -155,4 +159,4 @@ def load_scenario_spec(name: str, overrides=(), config: str | os.PathLike | None
 
 
 __all__ = ['Fault', 'InitialState', 'MetricWindows', 'Scenario', 'SurfaceSpec',
-           'load_scenario_spec', 'resolve_path', 'scenario_file', 'scenario_names']
+           'load_scenario_spec', 'resolve_path', 'scenario_file', 'scenario_names', 'surface_mu']

@@ -312,6 +312,10 @@ def _coefficients(cls, values: dict, section: str, source: str):
     for f in fields(cls):
         if f.name not in values and f.default is MISSING:
             raise ParamError(f'{source}: [{section}] {f.name}: missing (required)')
+        if f.default is MISSING and values[f.name] == 0.0 or f.name == 'LFZO' \
+                and values.get(f.name, 1.0) == 0.0:
+            raise ParamError(f'{source}: [{section}] {f.name}: must not be 0 (the Magic Formula '
+                             'divides by it)')
     return cls(**{k: v for k, v in values.items() if k in names})
 
 

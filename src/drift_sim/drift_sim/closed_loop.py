@@ -73,7 +73,7 @@ class SingleTrackSim:
         from drift_control.vehicle import NX, X
         from drift_sim.scenario import initial_pose
         self.loaded, self.scenario = loaded, loaded.scenario
-        self.plant = ModelPlant(vehicle, mu=self.scenario.mu, seed=self.scenario.seed)
+        self.plant = ModelPlant(vehicle, mu=loaded.mu, seed=self.scenario.seed)
         self.plant.seed, self.plant.model = self.scenario.seed, None
         self.dt, self.commands_lost = 0.01, 0
         start = initial_pose(self.scenario, loaded.path, vehicle.L)

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
-from drift_control.params import (CombinedTyreParams, ParamError, config_dir,  # noqa: F401
-                                  default_vehicle, from_dict, load_yaml, merge, require, set_key,
-                                  split_override)
+from drift_control.params import (CombinedTyreParams, ParamError, config_dir, from_dict,
+                                  load_yaml, merge, require, set_key, split_override,
+                                  vehicle_file)
 
 SIGNALS = ('V', 'beta', 'r', 'vx', 'vy', 'ax', 'ay', 'wheel_speeds', 'delta', 'steering_torque',
            'drive_torque', 'pose', 'yaw')
@@ -184,7 +184,7 @@ class PlantParams:
 
 def plant_file(vehicle: str | None = None, config: str | os.PathLike | None = None) -> Path:
     """``config/sim/plants/<vehicle>.yaml``: the simulator's car for a vehicle of ``config/vehicle``."""
-    vehicle = vehicle or default_vehicle(config)
+    vehicle = vehicle_file(vehicle, config).stem    # an unknown car: the known ones are named
     path = Path(config or config_dir()) / 'sim' / 'plants' / f'{vehicle}.yaml'
     if not path.is_file():
         raise ParamError(f'vehicle {vehicle!r}: no simulator plant {path} (the double-track '

@@ -17,7 +17,7 @@ from drift_control.params import config_dir, from_dict, load_yaml, merge
 from drift_control.path import Path
 from drift_control.scenario import (Fault, InitialState, MetricWindows, Scenario,  # noqa: F401
                                     SurfaceSpec, load_scenario_spec, resolve_path,
-                                    scenario_file, scenario_names)
+                                    scenario_file, scenario_names, surface_mu)
 from drift_sim.params import PlantParams, plant_yaml
 
 
@@ -30,6 +30,7 @@ class LoadedScenario:
     plant: PlantParams
     driver_raw: dict
     config: FsPath
+    mu: float                # the surface's mean friction, resolved in ``config`` [-]
 
 
 def load_scenario(name: str, overrides=(), config: str | os.PathLike | None = None,
@@ -47,7 +48,7 @@ def load_scenario(name: str, overrides=(), config: str | os.PathLike | None = No
     driver_raw = merge(load_yaml(driver_file) if driver_file.is_file() else {}, scenario.driver)
     where = scenario_file(name, config).name
     return LoadedScenario(scenario, resolve_path(scenario.path, config, where), plant,
-                          driver_raw, config)
+                          driver_raw, config, surface_mu(scenario, config))
 
 
 def initial_pose(scenario: Scenario, path: Path, wheelbase: float) -> dict:

@@ -48,7 +48,7 @@ class Simulator:
                  model: PlantModel | None = None):
         self.loaded = loaded
         self.scenario = sc = loaded.scenario
-        self.mu = sc.mu     # resolved once: the named surface's mu comes from a file
+        self.mu = loaded.mu
         self.plant = Plant(loaded.plant, mu=self.mu, seed=sc.seed if seed is None else seed,
                            model=model)
         self.dt = loaded.plant.step

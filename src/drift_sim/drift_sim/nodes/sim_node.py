@@ -3,6 +3,7 @@ import sys
 import time
 
 from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -11,7 +12,7 @@ from rosgraph_msgs.msg import Clock
 from drift_control.nodes import convert
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import Pacer
-from drift_control.params import config_dir
+from drift_control.params import ParamError, config_dir
 from drift_sim.lockstep import LockstepGate
 from drift_sim.scenario import load_scenario
 from drift_sim.simulator import Simulator
@@ -45,7 +46,7 @@ class SimNode(Node):
         can_channel = self.declare_parameter('can_channel', 'drift').value
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
         if self._mode not in ('realtime', 'lockstep'):
-            raise ValueError(f"clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
+            raise ParamError(f"sim: clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
         if duration > 0.0:
             overrides.append(f'duration={duration!r}')
         loaded = load_scenario(scenario, overrides, cfg, seed=None if seed < 0 else seed,
@@ -65,7 +66,7 @@ class SimNode(Node):
             self._can = CanVehicle(self._sim, CarSide.open(interface=can_interface,
                                                            channel=can_channel), can_hold)
         elif io != 'ros':
-            raise ValueError(f"io must be 'ros' or 'can', got {io!r}")
+            raise ParamError(f"sim: io must be 'ros' or 'can', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
@@ -82,7 +83,10 @@ class SimNode(Node):
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
 
     def close(self) -> None:
-        """Release the CAN bus of the ``io: can`` mode."""
+        """Let the recorder acknowledge the last states, release the CAN bus of ``io: can``."""
+        if self.context.ok():   # after a SIGINT the context is down: nothing more to send
+            for pub in (self._state_pub, self._truth_pub, self._clock_pub):
+                pub.wait_for_all_acked(Duration(seconds=1.0))
         if self._can is not None:
             self._can.car.bus.shutdown()
 
@@ -117,30 +121,30 @@ class SimNode(Node):
                 self._publish(self._sim.step(self._command))
             return
         skipped = self._pacer.skipped
-        for _ in range(self._pacer.due(time.monotonic())):
+        n, now = self._pacer.due(time.monotonic()), self.get_clock().now()
+        for i in range(n):   # a late tick runs the steps it missed, each with its own time
             if self._sim.done:
                 break
+            stamp = now - Duration(seconds=(n - 1 - i) * self._sim.dt)
             if self._can is not None:
                 self._can.step(time.monotonic())
-                self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state,
-                                                             self.get_clock().now()))
+                self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
             else:
-                self._publish(self._sim.step(self._command))
+                self._publish(self._sim.step(self._command), stamp)
         if self._pacer.skipped != skipped:
             self.get_logger().warning(f'real time: stalled, {self._pacer.skipped} steps of '
                                       f'{1e3 * self._sim.dt:g} ms dropped so far',
                                       throttle_duration_sec=2.0)
 
-    def _publish(self, state):
+    def _publish(self, state, stamp=None):
+        """The measured and true state; lock-step: stamped in sim time, with /clock."""
         if self._mode == 'lockstep':
             stamp = self._sim.t
-            self._state_pub.publish(convert.state_to_msg(state, stamp))
-            self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
             self._clock_pub.publish(Clock(clock=convert.time_to_msg(stamp)))
-        else:
-            now = self.get_clock().now()
-            self._state_pub.publish(convert.state_to_msg(state, now))
-            self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, now))
+        elif stamp is None:
+            stamp = self.get_clock().now()
+        self._state_pub.publish(convert.state_to_msg(state, stamp))
+        self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
 
 
 def main(args=None) -> int:

@@ -10,7 +10,6 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.nodes.spin import run_node
-from drift_control.pacing import Pacer
 from drift_control.params import config_dir, parse_overrides
 from drift_control.scenario import load_scenario_spec
 from drift_vehicle_bridge.codec import Codec
@@ -52,7 +51,6 @@ class BridgeNode(Node):
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.create_service(SetBool, 'bridge/arm', self._on_arm)
-        self._pacer = Pacer(params.cycle_time)   # every bus cycle runs, even after a late timer
         self.create_timer(params.cycle_time, self._on_tick)
         self.create_timer(self._diag_period, self._on_diag)
         self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}'
@@ -71,13 +69,13 @@ class BridgeNode(Node):
         return response
 
     def _on_tick(self):
-        state = None
-        for _ in range(self._pacer.due(time.monotonic())):   # bus cycles run even when late
-            now = time.monotonic()
-            for msg in self._replay.due(now) if self._replay else ():
-                self._gw.receive(msg, now)
-            state = self._gw.step(now)
-        if state is not None:   # the newest state once: a catch-up cycle brings no new frames
+        # one bus cycle per tick, never a catch-up burst: several command frames within a
+        # millisecond would move the actuators at a multiple of the limited rate
+        now = time.monotonic()
+        for msg in self._replay.due(now) if self._replay else ():
+            self._gw.receive(msg, now)
+        state = self._gw.step(now)
+        if state is not None:
             self._state_pub.publish(convert.state_to_msg(state, self.get_clock().now().to_msg()))
 
     def _on_diag(self):
