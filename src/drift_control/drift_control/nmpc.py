@@ -20,7 +20,9 @@ import numpy as np
 
 from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
 from drift_control.ocp_solvers import make_solver
+from drift_control.pacing import PeriodGate
 from drift_control.params import VehicleParams
+from drift_control.plausibility import InputChecker
 from drift_control.signals import Command, Direction, Mode, Reference, Validity, VehicleState
 from drift_control.supervisor import Supervisor, SupervisorParams
 from drift_control.vehicle import U, X
@@ -97,6 +99,7 @@ class Nmpc:
         self._solver = make_solver(self.ocp, nmpc_params.solver)
         self._hold = nmpc_params.torque_only_hold_stages if mode == Mode.TORQUE_ONLY else 0
         self.supervisor = Supervisor(supervisor) if supervisor is not None else None
+        self.inputs = InputChecker(vehicle_params, nmpc_params.inputs)
         self.reset()
 
     def reset(self) -> None:
@@ -111,6 +114,7 @@ class Nmpc:
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
+        self.inputs.reset()
 
     @property
     def model_error(self) -> np.ndarray:
@@ -121,10 +125,15 @@ class Nmpc:
     def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
         """One control cycle at time ``now`` [s] (the clock of the state and reference stamps)."""
         problem = self._input_problem(state, ref, now)
+        implausible = self.inputs.check(state) if state is not None and state.is_finite() \
+            and state.has(Validity.CONTROL) else None
         tripped = self.supervisor.check(state, ref, self._last, now) \
             if self.supervisor is not None and self._engaged else None
         if tripped is not None:   # latched: no more solving into a car that does not follow
             result = self._fallback(state, ref, now, f'supervisor: {tripped}', 0.0, 0)
+        elif implausible is not None:   # no old plan on garbage: the fallback in this cycle
+            result = self._failed(state, ref, now, f'implausible vehicle state: {implausible}',
+                                  solve_time=0.0, iterations=0, shift=False)
         elif problem is None:
             result = self._solve(state, ref, now)
         else:
@@ -158,6 +167,8 @@ class Nmpc:
             return 'no reference'
         if not ref.is_finite():
             return 'reference not finite'
+        if 0 < len(ref.horizon) < self.params.N:
+            return f'reference horizon of {len(ref.horizon)} stages, the NMPC needs >= {self.params.N}'
         if not abs(now - ref.stamp) <= age:
             return f'reference stale ({now - ref.stamp:.3f} s old)'
         return None
@@ -273,12 +284,13 @@ class Nmpc:
         self._x1_pred = None
 
     def _failed(self, state, ref, now, reason: str, solve_time: float,
-                iterations: int) -> NmpcResult:
-        """A cycle without a usable solution: the shifted plan while it lasts, then fallback."""
+                iterations: int, shift: bool = True) -> NmpcResult:
+        """A cycle without a usable solution: the shifted plan while it lasts (``shift``), then
+        fallback."""
         self._failures += 1
         self._x1_pred = None
         N = self.params.N
-        if self._w is not None and self._failures <= self.params.max_failures \
+        if shift and self._w is not None and self._failures <= self.params.max_failures \
                 and self._periods_in_stages(self._age + 1) < N - self._hold:
             self._age += 1
             X_pred, U_pred = self.ocp.split(
@@ -366,14 +378,16 @@ class LockstepTrigger:
 
     def __init__(self, period: float, reference_wait: float = 0.005):
         self.period, self.reference_wait = period, reference_wait
-        self._due = -math.inf
+        self.gate = PeriodGate(period)
         self._ref_stamp = -math.inf
         self._pending: tuple[float, float] | None = None   # (state stamp, wall time it came)
 
-    def on_state(self, stamp: float, wall: float) -> bool:
-        """A state arrived; True: solve now."""
-        if stamp >= self._due - self.EPS:
+    def on_state(self, stamp: float, wall: float, clock: float | None = None) -> bool:
+        """A state arrived (``clock``: the node's own time [s]); True: solve now."""
+        if self.gate.due(stamp, clock):
             self._pending = (stamp, wall)
+            if self._ref_stamp > stamp + PeriodGate.FUTURE_MAX:   # references of a dead timeline
+                self._ref_stamp = -math.inf
         return self._ready()
 
     def on_reference(self, stamp: float) -> bool:
@@ -388,7 +402,8 @@ class LockstepTrigger:
     def fired(self) -> float:
         """The solve for the pending state is done; returns that state's stamp."""
         stamp = self._pending[0]
-        self._due, self._pending = stamp + self.period, None
+        self.gate.fired(stamp)
+        self._pending = None
         return stamp
 
     def _ready(self) -> bool:

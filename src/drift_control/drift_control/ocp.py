@@ -28,6 +28,7 @@ import numpy as np
 
 from drift_control.params import (ParamError, VehicleParams, config_dir, from_dict, load_yaml,
                                    require)
+from drift_control.plausibility import InputLimits
 from drift_control.vehicle import N_VEHICLE, NTHETA, NU, U, X, VehicleModel, rk4_step
 
 NXO = N_VEHICLE            # vehicle states in the OCP: V, beta, r, omega_F, omega_R, delta
@@ -123,6 +124,7 @@ class NmpcParams:
     disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per period
     disturbance_beta_band: float = 0.05   # learn d only within this of the beta reference [rad]
     disturbance_min_beta: float = 0.2     # ... of a drift reference (|beta_ref| above) [rad]
+    inputs: InputLimits = field(default_factory=InputLimits)   # plausible measured states
     brake_speed_ratio: tuple[float, float] = (0.0, 0.0)   # V / V_ref: no braking torque below
                                     # the first, the full braking bound above the second (off: 0)
 

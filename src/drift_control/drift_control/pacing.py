@@ -1,4 +1,4 @@
-"""Real-time pacing: how many fixed-period cycles are due, so a late timer never loses a cycle.
+"""Pacing: cycles due on a clock (``Pacer``), periods due in stamp time (``PeriodGate``).
 
 A ROS timer that fires late skips the periods it missed (rcl keeps the phase, not the count): a
 10 ms loop on a loaded machine then runs at 93 Hz instead of 100. ``Pacer`` counts cycles on the
@@ -46,3 +46,36 @@ class Pacer:
         self.cycles += n
         self.late += int(n > 1)
         return n
+
+
+class PeriodGate:
+    """Once per ``period`` of stamp time: is a stamp due? Never wedged by one bad stamp.
+
+    A stamp more than ``FUTURE_MAX`` ahead of the node's own clock is refused (one state stamped
+    1e6 s would otherwise push the next due time out of reach for good); a stamp more than a
+    period before the last one that fired means the clock stepped back (a restarted simulator,
+    a corrected clock): the gate starts over on the new timeline instead of waiting out the step.
+    """
+
+    EPS = 1e-3          # stamp tolerance [s]
+    FUTURE_MAX = 1.0    # largest believable lead of a stamp over the node's clock [s]
+
+    def __init__(self, period: float):
+        self.period = period
+        self.last = -math.inf      # stamp that fired last
+        self.refused_future = 0    # stamps refused as from the future
+        self.restarts = 0          # backward clock steps followed
+
+    def due(self, stamp: float, clock: float | None = None) -> bool:
+        """Whether ``stamp`` opens a new period (``clock``: the node's time, None: unknown)."""
+        if clock is not None and stamp > clock + self.FUTURE_MAX:
+            self.refused_future += 1
+            return False
+        if stamp < self.last - self.period - self.EPS:
+            self.last = -math.inf
+            self.restarts += 1
+        return stamp >= self.last + self.period - self.EPS
+
+    def fired(self, stamp: float) -> None:
+        """The period of ``stamp`` was served."""
+        self.last = stamp

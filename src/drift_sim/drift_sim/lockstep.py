@@ -55,7 +55,10 @@ class LockstepGate:
     def ready(self, t: float, wall: float) -> bool:
         """May the simulator step from sim time ``t``? ``wall`` is a monotonic clock [s]."""
         eps = 0.5 * self.dt
-        have = (self.command is not None and self.command.stamp >= t - eps
+        # a command for this step: stamped at it (a command stamped far ahead is no command for
+        # every step to come: it would run the plant open loop)
+        have = (self.command is not None
+                and t - eps <= self.command.stamp <= t + self.every * self.dt + eps
                 and (not self.wait_reference
                      or self.reference_stamp > t - self.every * self.dt + eps))
         if not self.expects(t) or have:

@@ -139,6 +139,18 @@ def status_to_msg(result, stamp=None, frame_id: str = BODY_FRAME) -> msg.NmpcSta
     return m
 
 
-__all__ = ['command_from_msg', 'command_to_msg', 'equilibrium_from_msg', 'equilibrium_to_msg',
+def decode(convert, msg, logger=None):
+    """``convert(msg)``, or None for a malformed message (an enum out of range, a wrong-length
+    array): a message is rejected with its reason, it never ends a node."""
+    try:
+        return convert(msg)
+    except (ValueError, TypeError, IndexError, OverflowError) as err:
+        if logger is not None:
+            logger.warning(f'rejected a malformed {type(msg).__name__}: {err}',
+                           throttle_duration_sec=2.0)
+        return None
+
+
+__all__ = ['command_from_msg', 'decode', 'command_to_msg', 'equilibrium_from_msg', 'equilibrium_to_msg',
            'path_to_msg', 'reference_from_msg', 'reference_to_msg', 'state_from_msg',
            'state_to_msg', 'status_to_msg', 'time_from_msg', 'time_to_msg']

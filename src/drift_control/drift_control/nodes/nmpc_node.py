@@ -64,14 +64,24 @@ class NmpcNode(Node):
                                f'solver {params.solver.method}/{params.solver.qp_solver}')
 
     def _on_state(self, msg):
-        self._state = convert.state_from_msg(msg)
-        if self._trigger and self._trigger.on_state(self._state.stamp, time.monotonic()):
+        state = convert.decode(convert.state_from_msg, msg, self.get_logger())
+        if state is None:
+            return
+        self._state = state
+        if self._trigger and self._trigger.on_state(state.stamp, time.monotonic(),
+                                                    self._clock_s()):
             self._on_tick()
 
     def _on_ref(self, msg):
-        self._ref = convert.reference_from_msg(msg)
-        if self._trigger and self._trigger.on_reference(self._ref.stamp):
+        ref = convert.decode(convert.reference_from_msg, msg, self.get_logger())
+        if ref is None:
+            return
+        self._ref = ref
+        if self._trigger and self._trigger.on_reference(ref.stamp):
             self._on_tick()
+
+    def _clock_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
 
     def _poll(self):
         if self._trigger.poll(time.monotonic()):
@@ -79,8 +89,8 @@ class NmpcNode(Node):
 
     def _on_tick(self):
         now = self.get_clock().now()
-        if self._trigger:   # stamp with the state's time: /clock may not be in yet
-            stamp = self._trigger.fired()
+        if self._trigger:   # stamp with the state's time: /clock may not be in yet (the trigger
+            stamp = self._trigger.fired()   # refuses states further ahead of the clock)
             if stamp > now.nanoseconds * 1e-9:
                 now = Time(nanoseconds=int(round(stamp * 1e9)), clock_type=now.clock_type)
         result = self._nmpc.step(self._state, self._ref, now.nanoseconds * 1e-9)

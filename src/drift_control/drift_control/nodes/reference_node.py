@@ -14,6 +14,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from drift_control.assembly import load_setup
 from drift_control.nodes import convert
 from drift_control.nodes.spin import run_node
+from drift_control.pacing import PeriodGate
 from drift_control.params import ParamError, config_dir
 
 
@@ -36,7 +37,7 @@ class ReferenceNode(Node):
         params, path = setup.reference, setup.path
         self._selector = setup.build_selector()
         self._state, self._fresh = None, False
-        self._period, self._due = params.period, None   # trigger: state
+        self._gate = PeriodGate(params.period)   # trigger: state
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
@@ -54,14 +55,18 @@ class ReferenceNode(Node):
                                f'{path.length:.1f} m; radii {params.radius_min:g}'
                                f'..{params.radius_max:g} m')
 
-    def _on_state(self, msg):
-        self._state, self._fresh = convert.state_from_msg(msg), True
+    def _on_state(self, msg) -> bool:
+        state = convert.decode(convert.state_from_msg, msg, self.get_logger())
+        if state is not None:
+            self._state, self._fresh = state, True
+        return state is not None
 
     def _on_state_event(self, msg):
-        self._on_state(msg)
+        if not self._on_state(msg):
+            return
         stamp = self._state.stamp
-        if self._due is None or stamp >= self._due - 1e-3:
-            self._due = stamp + self._period
+        if self._gate.due(stamp, self.get_clock().now().nanoseconds * 1e-9):
+            self._gate.fired(stamp)
             self._on_tick()
 
     def _on_tick(self):

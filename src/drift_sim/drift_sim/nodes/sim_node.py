@@ -91,8 +91,11 @@ class SimNode(Node):
             self._can.car.bus.shutdown()
 
     def _on_command(self, msg):
-        self._command = convert.command_from_msg(msg)
-        self._gate.offer(self._command)
+        command = convert.decode(convert.command_from_msg, msg, self.get_logger())
+        if command is None:
+            return
+        self._command = command
+        self._gate.offer(command)
         if self._mode == 'lockstep':
             self._on_tick()     # step on at once: no timer latency in the loop
 

@@ -1,0 +1,184 @@
+"""Faults and bad input, in process: the controller never acts on garbage and is never wedged.
+
+Each case asserts what the stack must do: no exception, a finite command within the limits,
+the safe state in the same 20 ms cycle where one applies, and the reason named.
+"""
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from drift_control.equilibrium import solve_equilibrium
+from drift_control.nmpc import LockstepTrigger, Nmpc, NmpcStatus
+from drift_control.ocp import load_nmpc_params
+from drift_control.pacing import PeriodGate
+from drift_control.params import load_vehicle
+from drift_control.plausibility import InputChecker, InputLimits
+from drift_control.signals import Command, Direction, Mode, Reference, VehicleState
+from drift_sim.lockstep import LockstepGate
+
+TS = 0.02
+
+
+@pytest.fixture(scope='module')
+def vp():
+    return load_vehicle()
+
+
+@pytest.fixture(scope='module')
+def eq30(vp):
+    sol = solve_equilibrium(math.radians(-30.0), 15.0, vp)
+    assert sol.converged
+    return sol.eq
+
+
+@pytest.fixture(scope='module')
+def nmpc(vp):
+    return Nmpc(vp, load_nmpc_params())
+
+
+def _state(eq, now, k=0, **kw):
+    """The equilibrium as measured, with a little movement so it never looks frozen."""
+    wiggle = 1e-4 * math.sin(k)
+    base = VehicleState(stamp=now, V=eq.V + wiggle, beta=eq.beta, r=eq.r,
+                        wheel_speeds=(eq.omega_F, eq.omega_F, eq.omega_R, eq.omega_R),
+                        delta=eq.delta, drive_torque=eq.T_R)
+    return dataclasses.replace(base, **kw)
+
+
+def _engaged(nmpc, eq, cycles=10):
+    """An NMPC that has been solving on a steady drift; returns the time of the next cycle."""
+    nmpc.reset()
+    for k in range(cycles):
+        res = nmpc.step(_state(eq, k * TS, k), Reference(k * TS, eq, Direction.LEFT), k * TS)
+        assert res.status == NmpcStatus.OK, res.message
+    return cycles * TS
+
+
+def _assert_safe(res, vp, why):
+    c = res.command
+    assert all(math.isfinite(v) for v in (c.delta, c.delta_rate, c.drive_torque))
+    assert abs(c.delta) <= vp.limits.delta_max + 1e-9
+    assert vp.limits.T_R_min - 1e-6 <= c.drive_torque <= vp.limits.T_R_max + 1e-6
+    assert res.status == NmpcStatus.FALLBACK and c.mode == Mode.FALLBACK, res.message
+    assert why in res.message, res.message
+
+
+@pytest.mark.parametrize('fault, why', [
+    (dict(wheel_speeds=(-100.0, -100.0, -100.0, -100.0)), 'wheel speed FL'),
+    (dict(V=1000.0), 'speed 1000.0 m/s'),
+    (dict(r=50.0), 'yaw rate 50.00'),
+    (dict(delta=1.2), 'steering angle 1.200'),
+    (dict(wheel_speeds=(30.0, 30.0, 400.0, 400.0)), 'wheel speed RL'),
+])
+def test_an_impossible_but_finite_state_gives_the_fallback_in_the_same_cycle(nmpc, vp, eq30,
+                                                                             fault, why):
+    now = _engaged(nmpc, eq30)
+    last = nmpc._last
+    res = nmpc.step(_state(eq30, now, 99, **fault), Reference(now, eq30, Direction.LEFT), now)
+    _assert_safe(res, vp, f'implausible vehicle state: {why}')
+    # the fallback ramps the torque down from the last command, it does not jump to a limit
+    assert abs(res.command.drive_torque - last.drive_torque) <= 3000.0 * TS + 1e-6
+    # and the first plausible state after it is solved again
+    now += TS
+    res = nmpc.step(_state(eq30, now, 100), Reference(now, eq30, Direction.LEFT), now)
+    assert res.status == NmpcStatus.OK, res.message
+
+
+def test_a_frozen_sensor_is_noticed(nmpc, vp, eq30):
+    now = _engaged(nmpc, eq30)
+    frozen = _state(eq30, now, 7)
+    limit = load_nmpc_params().inputs.freeze_cycles
+    statuses = []
+    for k in range(limit + 2):
+        t = now + k * TS
+        res = nmpc.step(dataclasses.replace(frozen, stamp=t), Reference(t, eq30, Direction.LEFT), t)
+        statuses.append(res.status)
+    assert NmpcStatus.FALLBACK not in statuses[:limit - 1]
+    assert statuses[limit - 1] == NmpcStatus.FALLBACK
+    _assert_safe(res, vp, 'measurements frozen')
+
+
+def test_the_frozen_detector_ignores_a_sample_seen_again(vp):
+    checker = InputChecker(vp, InputLimits(freeze_cycles=3))
+    s = VehicleState(stamp=1.0, V=10.0, beta=-0.5, r=0.6, wheel_speeds=(30.0,) * 4)
+    assert all(checker.check(s) is None for _ in range(10)), 'same stamp: one sample'
+    assert checker.check(dataclasses.replace(s, stamp=1.02)) is None
+    assert 'frozen' in checker.check(dataclasses.replace(s, stamp=1.04))
+    assert checker.check(dataclasses.replace(s, stamp=1.06, V=10.01)) is None, 'moves again'
+
+
+def test_a_reference_with_a_short_horizon_or_nan_is_refused(nmpc, eq30):
+    now = _engaged(nmpc, eq30)
+    short = Reference(now, eq30, Direction.LEFT, horizon=(eq30,) * 3)
+    res = nmpc.step(_state(eq30, now, 50), short, now)
+    assert res.status != NmpcStatus.OK and 'horizon of 3 stages' in res.message
+    nan = Reference(now + TS, dataclasses.replace(eq30, V=math.nan), Direction.LEFT)
+    res = nmpc.step(_state(eq30, now + TS, 51), nan, now + TS)
+    assert res.status != NmpcStatus.OK and 'reference not finite' in res.message
+    assert all(math.isfinite(v) for v in (res.command.delta, res.command.drive_torque))
+
+
+def test_one_future_stamp_does_not_wedge_the_period_gate():
+    gate = PeriodGate(TS)
+    fired = []
+    for k in range(100):
+        t = k * 0.01
+        stamp = 1e6 if k == 30 else t            # one state stamped 1e6 s
+        if gate.due(stamp, clock=t):
+            gate.fired(stamp)
+            fired.append(k)
+    assert 30 not in fired and gate.refused_future == 1
+    assert fired == list(range(0, 30, 2)) + list(range(31, 100, 2)), 'the next state serves'
+
+
+def test_a_backward_clock_step_restarts_the_period_gate():
+    gate = PeriodGate(TS)
+    fired = []
+    for k in range(200):
+        t = k * 0.01 - (5.0 if k >= 100 else 0.0)    # the clock steps back 5 s at k = 100
+        if gate.due(t, clock=t):
+            gate.fired(t)
+            fired.append(k)
+    assert fired == list(range(0, 200, 2)), 'no 5 s gap after the step'
+    assert gate.restarts == 1
+
+
+def test_the_nmpc_trigger_survives_a_future_state():
+    trig = LockstepTrigger(TS, reference_wait=0.005)
+    solves = 0
+    for k in range(50):
+        t = k * 0.01
+        stamp = 1e6 if k == 10 else t
+        if trig.on_state(stamp, wall=t, clock=t) or trig.on_reference(t):
+            trig.fired()
+            solves += 1
+    assert solves == 25
+
+
+def test_the_lockstep_gate_does_not_take_a_future_command_for_every_step():
+    gate = LockstepGate(dt=0.01, command_period=TS, timeout=1.0, startup_timeout=10.0)
+    gate.offer(Command(1e6, 0.0, 0.0, 0.0, Mode.FULL))
+    assert not gate.ready(0.0, wall=0.0), 'a command from the future is no command for t = 0'
+    gate.offer(Command(0.0, 0.0, 0.0, 0.0, Mode.FULL))
+    assert gate.ready(0.0, wall=0.1)
+
+
+def test_malformed_messages_are_rejected_not_raised():
+    msgs = pytest.importorskip('drift_msgs.msg')
+    from drift_control.nodes import convert
+    bad = msgs.DriftReference(direction=7)
+    assert convert.decode(convert.reference_from_msg, bad) is None
+    bad = msgs.DriftCommand(mode=9)
+    assert convert.decode(convert.command_from_msg, bad) is None
+    good = convert.reference_to_msg(Reference(1.0, solve_equilibrium(
+        math.radians(-30.0), 15.0, load_vehicle()).eq, Direction.LEFT))
+    assert convert.decode(convert.reference_from_msg, good).direction == Direction.LEFT
+
+
+def test_input_limits_are_validated():
+    from drift_control.params import ParamError
+    with pytest.raises(ParamError, match='nmpc.inputs.freeze_cycles'):
+        InputLimits(freeze_cycles=1)
+    assert np.isclose(load_nmpc_params().inputs.V_max, InputLimits().V_max)
