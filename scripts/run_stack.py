@@ -70,6 +70,14 @@ def main(argv=None) -> int:
             vehicle_file(args.vehicle, cfg_dir)   # an unknown vehicle: one line, before any node
         stack = load_stack(args.stack or cfg_dir / 'stack.yaml')
         nodes = stack.graph(args.graph, [n for n in args.nodes.split(',') if n])
+        clock = args.clock or stack.defaults.get('clock', 'realtime')
+        if clock == 'lockstep' and stack.clock_owner not in {n.name for n in nodes}:
+            if args.clock == 'lockstep':   # nobody would publish /clock: no timer ever fires
+                raise ParamError(f'--clock lockstep: graph {args.graph!r} has no clock owner '
+                                 f'{stack.clock_owner!r} (stack.yaml clock_owner) to publish '
+                                 '/clock; use --clock realtime')
+            clock = 'realtime'
+            print(f'[launch] graph {args.graph!r} has no clock owner: real time', file=sys.stderr)
         if args.bag is not None:
             args.bag = args.bag.resolve()
             if (args.bag / 'metadata.yaml').exists():
@@ -82,7 +90,7 @@ def main(argv=None) -> int:
                           config_dir=cfg_dir,
                           scenario=stack.defaults.get('scenario', '') if args.scenario is None
                           else args.scenario,
-                          clock=args.clock or stack.defaults.get('clock', 'realtime'),
+                          clock=clock,
                           bag_dir=args.bag, domain_id=args.domain_id,
                           sim_duration=args.sim_duration,
                           vehicle=args.vehicle or '',

@@ -182,3 +182,41 @@ def test_input_limits_are_validated():
     with pytest.raises(ParamError, match='nmpc.inputs.freeze_cycles'):
         InputLimits(freeze_cycles=1)
     assert np.isclose(load_nmpc_params().inputs.V_max, InputLimits().V_max)
+
+
+def test_the_bridge_drops_to_off_on_an_impossible_wheel_speed(vp):
+    """The car side gets the same physical bounds: ACTIVE -> OFF in the cycle it arrives."""
+    import can
+    from drift_vehicle_bridge.gateway import Gateway
+    from drift_vehicle_bridge.params import load_bridge_params
+    from drift_vehicle_bridge.vehicle_side import CarSide
+    params = load_bridge_params(None, {'auto_arm': True})
+    calm = VehicleState(stamp=0.0, V=8.0, beta=-0.05, r=0.4, vx=8.0, vy=-0.4,
+                        wheel_speeds=(24.0, 24.0, 24.5, 24.5), delta=0.03, drive_torque=400.0)
+    with can.Bus('faults_t', interface='virtual') as car_bus, \
+            can.Bus('faults_t', interface='virtual') as our_bus:
+        car = CarSide(car_bus)
+        gw = Gateway(our_bus, car.codec, params, InputChecker(vp))
+        modes = []
+        for k in range(60):
+            now = 0.01 * k
+            bad = k >= 40
+            car.send_state(dataclasses.replace(calm, stamp=now, wheel_speeds=(
+                (24.0, 24.0, -90.0, -90.0) if bad else calm.wheel_speeds)))
+            if k >= 10:
+                gw.set_command(Command(now, -0.1, 0.0, 800.0, Mode.FULL), now)
+            gw.step(now)
+            car.poll_command(now)
+            modes.append(gw.mode.name)
+    assert modes[39] == 'ACTIVE_FULL' and modes[40] == 'OFF', modes[35:45]
+    assert gw.modes.reason.name == 'STATE_INVALID' and 'wheel speed RL' in gw.modes.implausible
+
+
+def test_a_state_offered_again_does_not_restart_the_nmpc_s_wait_for_its_reference():
+    """The lock-step sim offers state 0 again every 0.2 s until the first command; a late NMPC
+    whose reference never comes must still answer after its wait, not wait anew each time."""
+    trig = LockstepTrigger(TS, reference_wait=1.0)
+    assert not trig.on_state(0.0, wall=0.0, clock=0.0)
+    for wall in (0.2, 0.4, 0.6, 0.8, 1.0):
+        trig.on_state(0.0, wall=wall, clock=0.0)
+    assert trig.poll(1.05), 'answered 1 s after the state first came'

@@ -384,6 +384,8 @@ class LockstepTrigger:
 
     def on_state(self, stamp: float, wall: float, clock: float | None = None) -> bool:
         """A state arrived (``clock``: the node's own time [s]); True: solve now."""
+        if self._pending is not None and stamp == self._pending[0]:
+            return self._ready()   # the same state offered again: the wait goes on, not anew
         if self.gate.due(stamp, clock):
             self._pending = (stamp, wall)
             if self._ref_stamp > stamp + PeriodGate.FUTURE_MAX:   # references of a dead timeline

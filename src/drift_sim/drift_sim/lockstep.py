@@ -38,6 +38,7 @@ class LockstepGate:
         self.every = max(1, int(round(command_period / dt)))
         self.command: Command | None = None
         self.timeouts = 0
+        self.missed_in_row = 0     # command steps in a row that timed out
         self._wait_since: float | None = None
 
     def offer(self, command: Command) -> None:
@@ -63,12 +64,14 @@ class LockstepGate:
                      or self.reference_stamp > t - self.every * self.dt + eps))
         if not self.expects(t) or have:
             self._wait_since = None
+            self.missed_in_row = 0 if have else self.missed_in_row
             return True
         if self._wait_since is None:
             self._wait_since = wall
         limit = self.timeout if self.command is not None else self.startup_timeout
         if wall - self._wait_since > limit:
             self.timeouts += 1
+            self.missed_in_row += 1
             self._wait_since = None
             return True
         return False

@@ -40,13 +40,17 @@ class Gateway:
         The DBC codec.
     params : BridgeParams
         Validated bridge parameters.
+    checker : drift_control.plausibility.InputChecker, optional
+        The vehicle's physical bounds on a measured state (wheel speeds against the speed, the
+        steering lock): an implausible state is an invalid one.
     """
 
-    def __init__(self, bus: can.BusABC | None, codec: Codec, params: BridgeParams):
+    def __init__(self, bus: can.BusABC | None, codec: Codec, params: BridgeParams,
+                 checker=None):
         self.bus, self.codec, self.params = bus, codec, params
         self._allow = _check_tx_allow(codec, params)
         self.monitor = StateMonitor(codec, params.monitor)
-        self.modes = ModeManager(params.mode)
+        self.modes = ModeManager(params.mode, checker)
         self.limiter = CommandLimiter(params.limits, params.cycle_time)
         self.state: VehicleState | None = None
         self.sent: Counter = Counter()
@@ -111,6 +115,7 @@ class Gateway:
         """Counters for diagnostics (totals since start)."""
         checker = self.monitor.checker
         return {'mode': self.mode.name, 'drop_reason': self.modes.reason.name,
+                'implausible': self.modes.implausible or '',
                 'validity': self.state.validity if self.state else 0,
                 'rx': dict(checker.accepted), 'faults': dict(checker.faults),
                 'foreign': checker.foreign, 'tx': dict(self.sent), 'errors': dict(self.errors)}

@@ -50,10 +50,12 @@ class ModeManager:
     leaves OFF again.
     """
 
-    def __init__(self, params: ModeParams):
+    def __init__(self, params: ModeParams, checker=None):
         self.p = params
+        self.checker = checker     # drift_control.plausibility.InputChecker: physical bounds
         self.mode = BridgeMode.OFF
         self.reason = DropReason.NONE
+        self.implausible: str | None = None   # why the last state was not believed
         self._armed_at = 0.0
 
     def hazard(self, state: VehicleState | None, envelope: Envelope,
@@ -64,6 +66,9 @@ class ModeManager:
         the torque-only (semi-automated) mode the driver's hands on the wheel are the point.
         """
         if state is None or not state.is_finite() or not state.has(REQUIRED):
+            return DropReason.STATE_INVALID
+        self.implausible = self.checker.bounds(state) if self.checker is not None else None
+        if self.implausible is not None:   # finite but impossible (a wheel speed, the steering)
             return DropReason.STATE_INVALID
         if stack_steers and abs(state.steering_torque) > self.p.steering_torque_takeover:
             return DropReason.DRIVER_TORQUE
@@ -120,7 +125,8 @@ class ModeManager:
         return BridgeMode.ACTIVE_FULL
 
     def _drop(self, reason: DropReason) -> BridgeMode:
-        log.warning('%s -> OFF: %s', self.mode.name, reason.name)
+        log.warning('%s -> OFF: %s%s', self.mode.name, reason.name,
+                    f' ({self.implausible})' if self.implausible else '')
         self.mode, self.reason = BridgeMode.OFF, reason
         return self.mode
 

@@ -38,6 +38,7 @@ class ReferenceNode(Node):
         self._selector = setup.build_selector()
         self._state, self._fresh = None, False
         self._gate = PeriodGate(params.period)   # trigger: state
+        self._last_ref = None
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
@@ -68,6 +69,8 @@ class ReferenceNode(Node):
         if self._gate.due(stamp, self.get_clock().now().nanoseconds * 1e-9):
             self._gate.fired(stamp)
             self._on_tick()
+        elif stamp == self._gate.last and self._last_ref is not None:
+            self._ref_pub.publish(self._last_ref)   # offered again: for a node that joined late
 
     def _on_tick(self):
         if not self._fresh:   # publish only for new states: a stale state must look stale
@@ -75,7 +78,8 @@ class ReferenceNode(Node):
         self._fresh = False
         ref = self._selector.select(self._state)
         if ref is not None:
-            self._ref_pub.publish(convert.reference_to_msg(ref))
+            self._last_ref = convert.reference_to_msg(ref)
+            self._ref_pub.publish(self._last_ref)
 
 
 def main(args=None) -> int:

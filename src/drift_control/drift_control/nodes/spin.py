@@ -29,8 +29,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     caused by the interrupt, or followed by the shutdown within ``SHUTDOWN_GRACE_S``, is the end
     of the run, not a failure; any other is raised (that much later). The node's ``close()``, if it
     has one, runs before the node is destroyed (flush a bag, release a CAN bus). A node with a
-    ``finished`` future (the simulator at the end of its scenario) ends the run, exit 0, when
-    it completes.
+    ``finished`` future (the simulator at the end of its scenario) ends the run when it
+    completes: exit 0 with the result True, 1 with False (a failed run, its reason logged).
     """
     rclpy.init(args=args)
     node, code = None, 0
@@ -41,6 +41,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
             rclpy.spin(node)
         else:
             rclpy.spin_until_future_complete(node, finished)
+            if finished.done() and finished.result() is False:
+                code = 1   # the node ended the run for a reason it logged
     except ParamError as err:
         rclpy.logging.get_logger(name).error(str(err))
         code = 1

@@ -40,6 +40,11 @@ class SimNode(Node):
         period = self.declare_parameter('command_period', 0.02).value
         timeout = self.declare_parameter('lockstep_timeout', 1.0).value
         startup = self.declare_parameter('startup_timeout', 120.0).value
+        # the run fails when the controller stops: this many lock-step waits in a row, or in
+        # real time this long without a command [s]
+        self._max_missed = self.declare_parameter('max_missed_commands', 3).value
+        self._command_timeout = self.declare_parameter('command_timeout', 1.0).value
+        self._startup = startup
         wait_reference = self.declare_parameter('wait_reference', True).value
         io = self.declare_parameter('io', 'ros').value
         can_interface = self.declare_parameter('can_interface', 'virtual').value
@@ -54,6 +59,7 @@ class SimNode(Node):
         self._sim = Simulator(loaded)
         self._gate = LockstepGate(self._sim.dt, period, timeout, startup, wait_reference)
         self._command = None
+        self._command_wall = self._started = time.monotonic()
         self._pacer = Pacer(self._sim.dt)    # real time: every 10 ms step runs, late or not
         self._offered = time.monotonic()
         self._reported = 0
@@ -83,10 +89,7 @@ class SimNode(Node):
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
 
     def close(self) -> None:
-        """Let the recorder acknowledge the last states, release the CAN bus of ``io: can``."""
-        if self.context.ok():   # after a SIGINT the context is down: nothing more to send
-            for pub in (self._state_pub, self._truth_pub, self._clock_pub):
-                pub.wait_for_all_acked(Duration(seconds=1.0))
+        """Release the CAN bus of the ``io: can`` mode."""
         if self._can is not None:
             self._can.car.bus.shutdown()
 
@@ -94,16 +97,19 @@ class SimNode(Node):
         command = convert.decode(convert.command_from_msg, msg, self.get_logger())
         if command is None:
             return
-        self._command = command
+        self._command, self._command_wall = command, time.monotonic()
         self._gate.offer(command)
         if self._mode == 'lockstep':
             self._on_tick()     # step on at once: no timer latency in the loop
 
     def _on_tick(self):
+        if self.finished.done():
+            return
         if self._sim.done:
-            if not self.finished.done():
-                self.get_logger().info(f'scenario finished at t = {self._sim.t:.2f} s')
-                self.finished.set_result(True)
+            if self._command is None and self._can is None:
+                return self._fail('the controller never commanded in the whole run')
+            self.get_logger().info(f'scenario finished at t = {self._sim.t:.2f} s')
+            self._end(True)
             return
         if self._mode == 'lockstep':
             if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
@@ -118,11 +124,26 @@ class SimNode(Node):
                     return
                 if self._gate.timeouts != self._reported:
                     self._reported = self._gate.timeouts
+                    if self._command is None:
+                        return self._fail(f'the controller never commanded (startup_timeout '
+                                          f'{self._startup:g} s)')
+                    if self._gate.missed_in_row >= self._max_missed:
+                        return self._fail(f'the controller stopped commanding: no command for '
+                                          f'{self._gate.missed_in_row} lock-step steps in a row '
+                                          f'at t = {self._sim.t:.2f} s')
                     self.get_logger().warning(f'lockstep: no command for t={self._sim.t:.2f} s '
                                               f'({self._gate.timeouts} timeouts); stepping on',
                                               throttle_duration_sec=2.0)
                 self._publish(self._sim.step(self._command))
             return
+        if self._can is None:   # on CAN the bridge's heartbeat judges the commands
+            wall = time.monotonic()
+            if self._command is None and wall - self._started > self._startup:
+                return self._fail(f'the controller never commanded (startup_timeout '
+                                  f'{self._startup:g} s)')
+            if self._command is not None and wall - self._command_wall > self._command_timeout:
+                return self._fail(f'the controller stopped commanding: none for '
+                                  f'{wall - self._command_wall:.1f} s at t = {self._sim.t:.2f} s')
         skipped = self._pacer.skipped
         n, now = self._pacer.due(time.monotonic()), self.get_clock().now()
         for i in range(n):   # a late tick runs the steps it missed, each with its own time
@@ -138,6 +159,18 @@ class SimNode(Node):
             self.get_logger().warning(f'real time: stalled, {self._pacer.skipped} steps of '
                                       f'{1e3 * self._sim.dt:g} ms dropped so far',
                                       throttle_duration_sec=2.0)
+
+    def _fail(self, reason: str) -> None:
+        """End the run with an error: a run whose controller is silent must not pass."""
+        if not self.finished.done():
+            self.get_logger().error(f'ending the run: {reason}')
+            self._end(False)
+
+    def _end(self, ok: bool) -> None:
+        """End the run once the recorder has acknowledged the last states (reliable QoS)."""
+        for pub in (self._state_pub, self._truth_pub, self._clock_pub):
+            pub.wait_for_all_acked(Duration(seconds=1.0))
+        self.finished.set_result(ok)
 
     def _publish(self, state, stamp=None):
         """The measured and true state; lock-step: stamped in sim time, with /clock."""

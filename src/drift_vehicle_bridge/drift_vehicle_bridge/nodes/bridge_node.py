@@ -10,7 +10,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.nodes.spin import run_node
-from drift_control.params import config_dir, parse_overrides
+from drift_control.params import config_dir, load_vehicle, parse_overrides
+from drift_control.plausibility import InputChecker
 from drift_control.scenario import load_scenario_spec
 from drift_vehicle_bridge.codec import Codec
 from drift_vehicle_bridge.gateway import Gateway
@@ -41,7 +42,9 @@ class BridgeNode(Node):
             overrides['auto_arm'] = True
         params = load_bridge_params(cfg, overrides, vehicle or None)
         codec = Codec.load(dbc_path(params, cfg))
-        self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params)
+        checker = InputChecker(load_vehicle(vehicle or None, cfg))
+        self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params,
+                           checker)
         self._replay = LogReplay(log_file) if log_file else None
         self._hw = log_file or f'{params.bus.interface}:{params.bus.channel}'
         self._stats, self._diag_period = None, 1.0

@@ -47,6 +47,9 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     else:
         status.level, status.message = DiagnosticStatus.OK, 'ok'
     status.message += f"; mode {stats['mode']}"
+    if stats.get('implausible'):
+        status.level = DiagnosticStatus.ERROR
+        status.message = f"implausible vehicle state: {stats['implausible']}"
     values = {'mode': stats['mode'], 'drop_reason': stats['drop_reason'],
               'validity': f'0x{validity:03x}', 'foreign_frames': stats['foreign']}
     before = previous['rx'] if previous else {}
