@@ -245,7 +245,8 @@ def main(argv=None) -> int:
         print(f'bench_nmpc: {err}', file=sys.stderr)
         return 2
     load = os.getloadavg()
-    print(f'{name}: {args.beta_deg:g} deg drift on R {args.radius:g} m, {args.surface} (mu {mu:g}, plant '
+    print(f'{name}: {args.beta_deg:g} deg drift on R {args.radius:g} m, {args.surface} '
+          f'(mu {mu:g}, plant '
           f'{0.95 * mu:.3f}), reference {source}; {os.cpu_count()} cores, load '
           f'{load[0]:.2f} {load[1]:.2f}', flush=True)
     out = {'scenario': {'beta_deg': args.beta_deg, 'radius': args.radius, 'surface': args.surface,

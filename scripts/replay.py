@@ -121,7 +121,8 @@ def main(argv=None) -> int:
     parser.add_argument('--rerun', action='store_true', help='re-run the NMPC core offline')
     parser.add_argument('--control-mode', default='full', choices=('full', 'torque_only'))
     parser.add_argument('--surface', help='friction the NMPC assumes (default dry)')
-    parser.add_argument('--vehicle', help='the car the run drove (default: config/defaults.yaml\'s)')
+    parser.add_argument('--vehicle',
+                        help='the car the run drove (default: config/defaults.yaml\'s)')
     parser.add_argument('--json', help='with --rerun: write the comparison here')
     args = parser.parse_args(argv)
     if not (Path(args.bag) / 'metadata.yaml').exists():

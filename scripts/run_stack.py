@@ -29,7 +29,8 @@ def parse_args(argv=None):
     p.add_argument('--graph', default='sim', help='graph of stack.yaml (default: sim)')
     p.add_argument('--nodes', default='', help='comma-separated subset of the graph\'s nodes')
     p.add_argument('--duration', type=float, default=0.0,
-                   help='stop after this many wall-clock seconds (0: until Ctrl-C or the scenario\'s end)')
+                   help='stop after this many wall-clock seconds (0: until Ctrl-C or the '
+                        'scenario\'s end)')
     p.add_argument('--sim-duration', type=float, default=0.0,
                    help='simulated seconds the simulator runs before it ends the run '
                         '(default: the scenario\'s duration)')

@@ -5,8 +5,6 @@ import sys
 
 import pytest
 
-from conftest import REPO
-
 pytest.importorskip('drift_msgs.msg')
 pytestmark = pytest.mark.ros
 

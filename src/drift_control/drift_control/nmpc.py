@@ -168,7 +168,8 @@ class Nmpc:
         if not ref.is_finite():
             return 'reference not finite'
         if 0 < len(ref.horizon) < self.params.N:
-            return f'reference horizon of {len(ref.horizon)} stages, the NMPC needs >= {self.params.N}'
+            return (f'reference horizon of {len(ref.horizon)} stages, the NMPC needs '
+                    f'>= {self.params.N}')
         if not abs(now - ref.stamp) <= age:
             return f'reference stale ({now - ref.stamp:.3f} s old)'
         return None
@@ -434,4 +435,5 @@ def reference_rows(ref: Reference, N: int) -> np.ndarray:
     return out
 
 
-__all__ = ['INPUT_NAMES', 'STATE_NAMES', 'LockstepTrigger', 'Nmpc', 'NmpcResult', 'NmpcStatus', 'reference_rows']
+__all__ = ['INPUT_NAMES', 'STATE_NAMES', 'LockstepTrigger', 'Nmpc', 'NmpcResult', 'NmpcStatus',
+           'reference_rows']

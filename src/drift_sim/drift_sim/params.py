@@ -14,7 +14,7 @@ from pathlib import Path
 
 
 from drift_control.params import (CombinedTyreParams, ParamError, config_dir, from_dict,
-                                  load_yaml, merge, require, set_key, split_override,
+                                  load_yaml, require, set_key, split_override,
                                   vehicle_file)
 
 SIGNALS = ('V', 'beta', 'r', 'vx', 'vy', 'ax', 'ay', 'wheel_speeds', 'delta', 'steering_torque',
@@ -183,7 +183,7 @@ class PlantParams:
 
 
 def plant_file(vehicle: str | None = None, config: str | os.PathLike | None = None) -> Path:
-    """``config/sim/plants/<vehicle>.yaml``: the simulator's car for a vehicle of ``config/vehicle``."""
+    """``config/sim/plants/<vehicle>.yaml``: the simulator's car of a ``config/vehicle`` car."""
     vehicle = vehicle_file(vehicle, config).stem    # an unknown car: the known ones are named
     path = Path(config or config_dir()) / 'sim' / 'plants' / f'{vehicle}.yaml'
     if not path.is_file():
@@ -199,7 +199,7 @@ def plant_yaml(config: str | os.PathLike | None = None, vehicle: str | None = No
 
 def load_plant_params(raw: dict | None = None, overrides=(), config=None,
                       vehicle: str | None = None) -> PlantParams:
-    """Validate a plant mapping (default: the vehicle's plant file) after ``key=value`` overrides."""
+    """Validate a plant mapping (default: the vehicle's plant file) after ``--set`` overrides."""
     raw = copy.deepcopy(raw if raw is not None else plant_yaml(config, vehicle))
     for item in overrides:
         set_key(raw, *split_override(item), where='plant')

@@ -151,6 +151,7 @@ def decode(convert, msg, logger=None):
         return None
 
 
-__all__ = ['command_from_msg', 'decode', 'command_to_msg', 'equilibrium_from_msg', 'equilibrium_to_msg',
+__all__ = ['command_from_msg', 'command_to_msg', 'decode', 'equilibrium_from_msg',
+           'equilibrium_to_msg',
            'path_to_msg', 'reference_from_msg', 'reference_to_msg', 'state_from_msg',
            'state_to_msg', 'status_to_msg', 'time_from_msg', 'time_to_msg']

@@ -59,7 +59,8 @@ class NmpcNode(Node):
         else:   # wall clock: sim time stands still while the simulator waits for us
             self.create_timer(0.002, self._poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} (mu {surface.mu:g}), '
+        self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} '
+                               f'(mu {surface.mu:g}), '
                                f'trigger {trigger}, '
                                f'solver {params.solver.method}/{params.solver.qp_solver}')
 

@@ -51,7 +51,8 @@ class SimNode(Node):
         can_channel = self.declare_parameter('can_channel', 'drift').value
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
         if self._mode not in ('realtime', 'lockstep'):
-            raise ParamError(f"sim: clock_mode must be 'realtime' or 'lockstep', got {self._mode!r}")
+            raise ParamError(f"sim: clock_mode must be 'realtime' or 'lockstep', "
+                             f'got {self._mode!r}')
         if duration > 0.0:
             overrides.append(f'duration={duration!r}')
         loaded = load_scenario(scenario, overrides, cfg, seed=None if seed < 0 else seed,
