@@ -24,14 +24,25 @@ from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, S
                                load_stack, node_command, node_env, write_params_file)
 
 
+def _seconds(text: str) -> float:
+    """A duration >= 0 [s] for argparse (a negative or non-finite one is one line, exit 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value < float('inf'):
+        raise argparse.ArgumentTypeError(f'expected seconds >= 0, got {text!r}')
+    return value
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--graph', default='sim', help='graph of stack.yaml (default: sim)')
     p.add_argument('--nodes', default='', help='comma-separated subset of the graph\'s nodes')
-    p.add_argument('--duration', type=float, default=0.0,
+    p.add_argument('--duration', type=_seconds, default=0.0,
                    help='stop after this many wall-clock seconds (0: until Ctrl-C or the '
                         'scenario\'s end)')
-    p.add_argument('--sim-duration', type=float, default=0.0,
+    p.add_argument('--sim-duration', type=_seconds, default=0.0,
                    help='simulated seconds the simulator runs before it ends the run '
                         '(default: the scenario\'s duration)')
     p.add_argument('--bag', type=Path, help='record to this rosbag2 (MCAP) directory')

@@ -24,10 +24,11 @@ class SurfaceSpec:
     """The surface: a name from ``config/vehicle/surfaces.yaml``, optionally another mu."""
 
     name: str
-    mu: float = -1.0     # [-]; negative: the named surface's mu
+    mu: float = 0.0      # [-]; 0 (not given): the named surface's mu
 
     def __post_init__(self):
-        require(self.mu == -1.0 or 0.0 < self.mu <= 2.0, 'surface.mu', 'must be in (0, 2]')
+        require(self.mu == 0.0 or 0.0 < self.mu <= 2.0, 'surface.mu',
+                f'must be in (0, 2] (or left out for the named surface\'s), got {self.mu}')
 
 
 @dataclass(frozen=True)
