@@ -220,3 +220,22 @@ def test_a_state_offered_again_does_not_restart_the_nmpc_s_wait_for_its_referenc
     for wall in (0.2, 0.4, 0.6, 0.8, 1.0):
         trig.on_state(0.0, wall=wall, clock=0.0)
     assert trig.poll(1.05), 'answered 1 s after the state first came'
+
+
+@pytest.mark.parametrize('script, argv', [
+    ('run_stack', ['--duration', '-5']), ('run_stack', ['--sim-duration', 'inf']),
+    ('simulate', ['--scenario', 'steady_dry', '--seed', '-1'])])
+def test_negative_durations_and_seeds_are_one_line_and_exit_2(capsys, script, argv):
+    from conftest import load_script
+    with pytest.raises(SystemExit) as ended:
+        load_script(script).main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert ended.value.code == 2 and 'error: argument' in err[-1]
+
+
+def test_a_negative_surface_friction_is_refused_not_read_as_the_named_surface():
+    from drift_control.params import ParamError
+    from drift_control.scenario import load_scenario_spec
+    with pytest.raises(ParamError, match='surface.mu: must be in'):
+        load_scenario_spec('steady_dry', ['surface.mu=-1'])
+    assert load_scenario_spec('steady_dry', ['surface.mu=0.9']).surface.mu == 0.9
