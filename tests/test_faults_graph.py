@@ -5,6 +5,8 @@ import sys
 
 import pytest
 
+from conftest import REPO
+
 pytest.importorskip('drift_msgs.msg')
 pytestmark = pytest.mark.ros
 
@@ -26,3 +28,16 @@ def test_lockstep_on_a_graph_without_its_clock_owner_is_refused_at_launch(capsys
                                         '--duration', '1'])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "has no clock owner 'sim'" in err and len(err.splitlines()) == 1, err
+
+
+def test_a_stop_during_start_up_is_honoured_without_sigkill():
+    """--duration 1 stops the graph while the simulator still builds its plant (CasADi clears a
+    pending SIGINT there; the launcher's SIGTERM is remembered from the first import on)."""
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, str(REPO / 'scripts' / 'run_stack.py'),
+                               '--duration', '1', '--domain-id', '125'], env=env,
+                              capture_output=True, text=True, timeout=60)
+        out = proc.stdout + proc.stderr
+        assert proc.returncode == 0 and 'SIGKILL' not in out, out[-2000:]
+        assert 'exit codes: sim=0, reference=0, nmpc=0' in out, out[-2000:]

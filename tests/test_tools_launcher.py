@@ -17,9 +17,12 @@ from drift_tools.stack import (RECORDER_MODULE, NodeSpec, RunOptions, load_stack
 CHILD = r'''
 import signal, sys, time
 mode, delay = sys.argv[1], float(sys.argv[2])
+def stop(signum, frame):
+    raise KeyboardInterrupt
+signal.signal(signal.SIGTERM, stop)
 print("up", flush=True)
 if mode == "ignore":
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 if mode in ("crash", "finish"):
     time.sleep(delay)
     print("leaving", flush=True)
@@ -29,7 +32,7 @@ try:
         time.sleep(0.02)
 except KeyboardInterrupt:
     time.sleep(delay)
-    print("got SIGINT", flush=True)
+    print("got SIGTERM", flush=True)
 '''
 
 
@@ -54,7 +57,7 @@ def test_duration_is_respected_and_nodes_stop_cleanly():
                                   duration=1.0)
     assert outcome.reason == 'duration' and outcome.ok and outcome.exit_code == 0
     assert 1.0 <= elapsed < 4.0
-    assert '[a]  got SIGINT' in lines and '[bb] got SIGINT' in lines   # prefixed, aligned
+    assert '[a]  got SIGTERM' in lines and '[bb] got SIGTERM' in lines   # prefixed, aligned
     assert outcome.returncodes == {'a': 0, 'bb': 0}
 
 
@@ -63,7 +66,7 @@ def test_a_crashing_node_stops_the_rest_and_fails_the_run():
                                   duration=30.0)
     assert outcome.reason == 'node-crash' and outcome.failed_node == 'bad'
     assert not outcome.ok and outcome.exit_code == 7
-    assert elapsed < 5.0 and '[ok]  got SIGINT' in lines
+    assert elapsed < 5.0 and '[ok]  got SIGTERM' in lines
 
 
 def test_a_node_finishing_normally_ends_the_run_ok():
@@ -76,11 +79,11 @@ def test_stop_request_is_forwarded_recorder_last():
     outcome, elapsed, lines = run([('rec', child('run'), True), ('node', child('run', 0.5), False)],
                                   stop_after=0.8)
     assert outcome.reason == 'signal' and outcome.ok and elapsed < 4.0
-    got = [line for line in lines if line.startswith('[') and line.endswith('got SIGINT')]
-    assert got == ['[node] got SIGINT', '[rec]  got SIGINT'], 'the recorder must stop after the rest'
+    got = [line for line in lines if line.startswith('[') and line.endswith('got SIGTERM')]
+    assert got == ['[node] got SIGTERM', '[rec]  got SIGTERM'], 'the recorder must stop after the rest'
 
 
-def test_a_node_ignoring_sigint_is_killed_and_fails_the_run():
+def test_a_node_ignoring_sigterm_is_killed_and_fails_the_run():
     outcome, elapsed, lines = run([('stubborn', child('ignore'), False)], duration=0.5,
                                   kill_timeout=0.7)
     assert outcome.killed == ['stubborn'] and not outcome.ok and outcome.exit_code == 1

@@ -1,8 +1,9 @@
 """Runs a set of node processes: prefixed, coloured logs; clean shutdown; failure on a crash.
 
 No rclpy here: each node is its own OS process, started in its own session so a terminal's Ctrl-C
-reaches only the launcher, which forwards SIGINT in a defined order (recorders last) and escalates
-to SIGKILL after a timeout.
+reaches only the launcher, which stops the nodes with SIGTERM in a defined order (recorders last)
+and escalates to SIGKILL after a timeout. SIGTERM, not SIGINT: CasADi polls and clears a pending
+SIGINT inside its calls (the simulator building its plant), so a SIGINT could be lost.
 """
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ logger = logging.getLogger(__name__)
 
 COLOURS = (36, 33, 35, 32, 34, 91, 96, 93)   # ANSI foreground codes, one per node
 _PR_SET_PDEATHSIG = 1
-CLEAN_EXIT_CODES = (0, -signal.SIGINT, 130)  # what a node may return after our SIGINT
+STOP_SIGNAL = signal.SIGTERM
+# what a node may return after our stop signal (or a terminal's SIGINT)
+CLEAN_EXIT_CODES = (0, -signal.SIGINT, 130, -signal.SIGTERM, 128 + signal.SIGTERM)
 
 
 @dataclass
@@ -69,7 +72,7 @@ class Launcher:
     colour : bool or None
         Colour the prefixes; ``None`` colours when ``out`` is a terminal.
     kill_timeout : float
-        Seconds a node gets to exit after SIGINT before SIGKILL [s].
+        Seconds a node gets to exit after SIGTERM before SIGKILL [s].
     """
 
     def __init__(self, out=None, colour: bool | None = None, kill_timeout: float = 8.0):
@@ -167,7 +170,7 @@ class Launcher:
         return outcome
 
     def stop_all(self) -> Outcome:
-        """SIGINT every node (recorders last), SIGKILL what outlives the timeout; reap all."""
+        """SIGTERM every node (recorders last), SIGKILL what outlives the timeout; reap all."""
         outcome = Outcome('signal')
         first = [p for p in self.procs if not p.stop_last]
         last = [p for p in self.procs if p.stop_last]
@@ -175,7 +178,7 @@ class Launcher:
             for p in group:
                 if p.popen.poll() is None:
                     p.expected_exit = True
-                    p.popen.send_signal(signal.SIGINT)
+                    p.popen.send_signal(STOP_SIGNAL)
             deadline = time.monotonic() + self._kill_timeout
             for p in group:
                 while p.popen.poll() is None and not self._kill_now \
@@ -183,7 +186,7 @@ class Launcher:
                     time.sleep(0.02)
                 if p.popen.poll() is None:
                     why = 'second interrupt' if self._kill_now else \
-                        f'no exit {self._kill_timeout:g} s after SIGINT'
+                        f'no exit {self._kill_timeout:g} s after SIGTERM'
                     self._say(f'{p.name}: {why}: SIGKILL')
                     p.popen.kill()
                     p.popen.wait()

@@ -1,18 +1,22 @@
 """How every node process runs: init, spin, a clean end on SIGINT, cleanup and an exit code."""
 from __future__ import annotations
 
+import signal
 import time
 from typing import Callable
 
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 
+from drift_control.nodes import stops
 from drift_control.params import ParamError
 
 # rclpy's SIGINT handler shuts the context down from its own thread, so an error the interrupt
 # caused in the executor can come before the context is down: wait this long for it [s]
 SHUTDOWN_GRACE_S = 0.5
+STOP_POLL_S = 0.1   # a signal ends the spin at the latest this long after it came [s]
 
 
 def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
@@ -31,18 +35,25 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     has one, runs before the node is destroyed (flush a bag, release a CAN bus). A node with a
     ``finished`` future (the simulator at the end of its scenario) ends the run when it
     completes: exit 0 with the result True, 1 with False (a failed run, its reason logged).
+
+    SIGINT and SIGTERM are ours, not rclpy's (``drift_control.nodes.stops``): a stop is
+    remembered whenever it comes, from the node module's first import on, and ends the spin
+    within ``STOP_POLL_S``.
     """
-    rclpy.init(args=args)
+    stops.install()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node, code = None, 0
     try:
         node = factory()
         finished = getattr(node, 'finished', None)
-        if finished is None:
-            rclpy.spin(node)
-        else:
-            rclpy.spin_until_future_complete(node, finished)
-            if finished.done() and finished.result() is False:
-                code = 1   # the node ended the run for a reason it logged
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while not stops.STOPS and rclpy.ok() and not (finished is not None and finished.done()):
+            executor.spin_once(timeout_sec=STOP_POLL_S)
+        if stops.STOPS:
+            node.get_logger().info(f'stopping on {signal.Signals(stops.STOPS[0]).name}')
+        if finished is not None and finished.done() and finished.result() is False:
+            code = 1   # the node ended the run for a reason it logged
     except ParamError as err:
         rclpy.logging.get_logger(name).error(str(err))
         code = 1
