@@ -61,3 +61,30 @@ def node_env(tools_domain_id):
     env['PYTHONPATH'] = os.pathsep.join(filter(None, [str(TESTS), env.get('PYTHONPATH', '')]))
     env['PYTHONUNBUFFERED'] = '1'
     return env
+
+
+# --- the default car's NMPC, shared by the NMPC and fault tests (built once per module) ---------
+
+@pytest.fixture(scope='module')
+def vp():
+    """The default vehicle's controller parameters."""
+    from drift_control.params import load_vehicle
+    return load_vehicle()
+
+
+@pytest.fixture(scope='module')
+def eq30(vp):
+    """The 30 deg left drift equilibrium on R = 15 m, dry."""
+    import math
+    from drift_control.equilibrium import solve_equilibrium
+    sol = solve_equilibrium(math.radians(-30.0), 15.0, vp)
+    assert sol.converged
+    return sol.eq
+
+
+@pytest.fixture(scope='module')
+def nmpc(vp):
+    """The configured (compiled, cached under .codegen/) solver."""
+    from drift_control.nmpc import Nmpc
+    from drift_control.ocp import load_nmpc_params
+    return Nmpc(vp, load_nmpc_params())

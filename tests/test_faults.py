@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drift_control.equilibrium import solve_equilibrium
-from drift_control.nmpc import LockstepTrigger, Nmpc, NmpcStatus
+from drift_control.nmpc import LockstepTrigger, NmpcStatus
 from drift_control.ocp import load_nmpc_params
 from drift_control.pacing import PeriodGate
 from drift_control.params import load_vehicle
@@ -19,23 +19,6 @@ from drift_control.signals import Command, Direction, Mode, Reference, VehicleSt
 from drift_sim.lockstep import LockstepGate
 
 TS = 0.02
-
-
-@pytest.fixture(scope='module')
-def vp():
-    return load_vehicle()
-
-
-@pytest.fixture(scope='module')
-def eq30(vp):
-    sol = solve_equilibrium(math.radians(-30.0), 15.0, vp)
-    assert sol.converged
-    return sol.eq
-
-
-@pytest.fixture(scope='module')
-def nmpc(vp):
-    return Nmpc(vp, load_nmpc_params())
 
 
 def _state(eq, now, k=0, **kw):

@@ -17,26 +17,8 @@ TS = 0.02
 
 
 @pytest.fixture(scope='module')
-def vp():
-    return load_vehicle()
-
-
-@pytest.fixture(scope='module')
 def params():
     return load_nmpc_params()
-
-
-@pytest.fixture(scope='module')
-def eq30(vp):
-    sol = solve_equilibrium(math.radians(-30.0), 15.0, vp)
-    assert sol.converged
-    return sol.eq
-
-
-@pytest.fixture(scope='module')
-def nmpc(vp, params):
-    """The configured (compiled, cached under .codegen/) solver, built once for the module."""
-    return Nmpc(vp, params)
 
 
 @pytest.fixture(scope='module')

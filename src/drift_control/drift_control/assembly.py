@@ -17,7 +17,7 @@ from pathlib import Path as FsPath
 
 from drift_control.ocp import NmpcParams, load_nmpc_params
 from drift_control.params import (ParamError, Surface, VehicleParams, config_dir, load_defaults,
-                                  load_surface, load_vehicle, params_hash, vehicle_file)
+                                  load_surface, load_vehicle, vehicle_file)
 from drift_control.path import Path, load_path_file
 from drift_control.reference import (ReferenceParams, ReferenceSelector, check_horizon_spacing,
                                      load_reference_params)
@@ -84,11 +84,6 @@ class Setup:
     def mode(self) -> Mode:
         """The scenario's control mode (FULL without a scenario)."""
         return MODES[self.scenario.control_mode] if self.scenario else Mode.FULL
-
-    @property
-    def vehicle_hash(self) -> str:
-        """Hash of the controller's vehicle parameters (maps and compiled solvers carry it)."""
-        return params_hash(self.vehicle)
 
     def build_nmpc(self, mode: Mode | None = None, supervised: bool = True):
         """The NMPC for this vehicle, tuning and the named surface's friction."""

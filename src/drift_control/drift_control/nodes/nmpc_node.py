@@ -60,8 +60,7 @@ class NmpcNode(Node):
             self.create_timer(0.002, self._poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} '
-                               f'(mu {surface.mu:g}), '
-                               f'trigger {trigger}, '
+                               f'(mu {surface.mu:g}), trigger {trigger}, '
                                f'solver {params.solver.method}/{params.solver.qp_solver}')
 
     def _on_state(self, msg):

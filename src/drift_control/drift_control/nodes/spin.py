@@ -13,32 +13,26 @@ from rclpy.node import Node
 from drift_control.nodes import stops
 from drift_control.params import ParamError
 
-# rclpy's SIGINT handler shuts the context down from its own thread, so an error the interrupt
-# caused in the executor can come before the context is down: wait this long for it [s]
+# a context shut down from another thread can make a callback fail just before rclpy.ok() turns
+# false: wait this long for the shutdown before calling the error a failure [s]
 SHUTDOWN_GRACE_S = 0.5
 STOP_POLL_S = 0.1   # a signal ends the spin at the latest this long after it came [s]
 
 
 def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
-    """Build the node with ``factory`` and spin it until shutdown; returns the exit code.
-
-    A bad parameter (``ParamError``) is logged as one line and exits 1. SIGINT from the launcher
-    shuts the context down, possibly while the executor is inside a callback or taking a
-    message: rclpy then raises from there (``RCLError`` "publisher's context is invalid" on a
-    publish, ``RuntimeError`` "Unable to convert call argument" on a take; each failed a
-    lock-step run at its end in CI). The interrupt itself may surface inside a C extension
-    as another error (``SystemError`` from casadi's ``DM.__array__``, caused by the
-    ``KeyboardInterrupt``). The handler shuts the context down from its own thread, so such an
-    error can also come just before the shutdown lands (a take failed that way). An exception
-    caused by the interrupt, or followed by the shutdown within ``SHUTDOWN_GRACE_S``, is the end
-    of the run, not a failure; any other is raised (that much later). The node's ``close()``, if it
-    has one, runs before the node is destroyed (flush a bag, release a CAN bus). A node with a
-    ``finished`` future (the simulator at the end of its scenario) ends the run when it
-    completes: exit 0 with the result True, 1 with False (a failed run, its reason logged).
+    """Build the node with ``factory`` and spin it until it is stopped; returns the exit code.
 
     SIGINT and SIGTERM are ours, not rclpy's (``drift_control.nodes.stops``): a stop is
     remembered whenever it comes, from the node module's first import on, and ends the spin
-    within ``STOP_POLL_S``.
+    within ``STOP_POLL_S`` (exit 0). A node with a ``finished`` future (the simulator at the end
+    of its scenario) ends the run when it completes: exit 0 with the result True, 1 with False
+    (a failed run, its reason logged). A bad parameter (``ParamError``) is one line, exit 1.
+    A context shut down while a callback runs (``rclpy.shutdown`` from elsewhere) makes rclpy
+    raise from there (``RCLError`` on a publish, ``RuntimeError`` on a take), possibly just
+    before the shutdown lands: an exception caused by an interrupt, or followed by the shutdown
+    within ``SHUTDOWN_GRACE_S``, is the end of the run, not a failure; any other is raised. The
+    node's ``close()``, if it has one, runs before the node is destroyed (flush a bag, release a
+    CAN bus).
     """
     stops.install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
