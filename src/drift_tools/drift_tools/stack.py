@@ -158,6 +158,8 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim') -> 
         params['clock_mode'] = opts.clock
     if spec.module == SIM_MODULE and opts.sim_duration:
         params['duration'] = float(opts.sim_duration)
+    if spec.module == SIM_MODULE and opts.bag_dir is not None:
+        params['wait_recorder'] = True   # lock-step: no step before the bag records the truth
     if spec.module == RECORDER_MODULE and opts.bag_dir is not None:
         params['bag_dir'] = str(opts.bag_dir)
     params.update(opts.extra_params)

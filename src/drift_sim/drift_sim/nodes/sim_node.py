@@ -46,6 +46,9 @@ class SimNode(Node):
         self._command_timeout = self.declare_parameter('command_timeout', 1.0).value
         self._startup = startup
         wait_reference = self.declare_parameter('wait_reference', True).value
+        # lock-step: the first step waits until the ground truth has a subscriber (the recorder
+        # of a run_stack --bag run, which discovers topics by polling and may join late)
+        self._wait_recorder = self.declare_parameter('wait_recorder', False).value
         io = self.declare_parameter('io', 'ros').value
         can_interface = self.declare_parameter('can_interface', 'virtual').value
         can_channel = self.declare_parameter('can_channel', 'drift').value
@@ -81,7 +84,10 @@ class SimNode(Node):
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable)
         self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
                                  offer_reference(convert.time_from_msg(m.header.stamp)), 10)
-        if self._can is None:
+        self._wait_recorder = self._wait_recorder and self._mode == 'lockstep' and io == 'ros'
+        if self._wait_recorder:   # all of t = 0 again once the recorder is there
+            self._state_pub.publish(convert.state_to_msg(self._sim.state, self._sim.t))
+        elif self._can is None:
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
         self.create_timer(tick, self._on_tick)
@@ -119,6 +125,14 @@ class SimNode(Node):
                 # recorded truth and clock stay one message per step)
                 self._offered = time.monotonic()
                 self._state_pub.publish(convert.state_to_msg(self._sim.state, self._sim.t))
+            if self._wait_recorder:
+                if self._truth_pub.get_subscription_count() == 0:
+                    if time.monotonic() - self._started > self._startup:
+                        return self._fail(f'no recorder subscribed to the ground truth within '
+                                          f'startup_timeout {self._startup:g} s')
+                    return
+                self._wait_recorder = False
+                self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
             # as many steps as the gate allows (up to the next command), then back to spin
             for _ in range(self._gate.every):
                 if self._sim.done or not self._gate.ready(self._sim.t, time.monotonic()):
