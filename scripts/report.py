@@ -5,8 +5,9 @@
 
 Steady-drift windows come from the scenario's ``metrics`` section when ``--scenario`` is given,
 else from the recorded reference (where its sideslip holds its plateau). Output goes to
-``BAG/report/`` by default: metrics.json, report.md, states.png, inputs.png, path.png,
-solve_time.png. A bag whose recorder was killed is repaired first (``drift_tools.bag.reindex``).
+``BAG_report/`` beside the bag by default: metrics.json, report.md, states.png, inputs.png,
+path.png, solve_time.png. The bag is only read; one whose recorder was killed is read as far as
+it is intact (``scripts/bag.py recover`` writes a repaired copy).
 """
 import argparse
 import sys
@@ -16,16 +17,18 @@ from pathlib import Path
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('bag', help='rosbag2 directory (metadata.yaml + .mcap)')
-    parser.add_argument('--out', help='output directory (default BAG/report)')
+    parser.add_argument('--out', help='output directory (default: BAG_report beside the bag)')
     parser.add_argument('--scenario', help='take the steady-drift windows from this scenario')
     parser.add_argument('--no-figures', action='store_true')
     args = parser.parse_args(argv)
 
-    from drift_tools.bag import read_bag, reindex
+    from drift_tools.bag import read_bag
+    from drift_tools.bag_salvage import BagDamagedError
     from drift_tools.report import write_report
     from drift_tools.timeseries import series_from_bag
 
     bag = Path(args.bag)
+    out = Path(args.out) if args.out else bag.with_name(bag.name + '_report')
     if not (bag / 'metadata.yaml').exists():
         print(f'report: {bag}: not a bag directory (no metadata.yaml)', file=sys.stderr)
         return 2
@@ -36,14 +39,13 @@ def main(argv=None) -> int:
         windows = [list(w) for w in scenario.metrics.steady]
         transient_end = scenario.metrics.transient_end
     try:
-        reindex(bag)
         run = series_from_bag(read_bag(bag))
-        m = write_report(run, args.out or bag / 'report', bag.name, windows, transient_end,
+        m = write_report(run, out, bag.name, windows, transient_end,
                          with_figures=not args.no_figures)
-    except (ValueError, OSError) as err:
+    except (BagDamagedError, ValueError, OSError) as err:
         print(f'report: {err}', file=sys.stderr)
         return 2
-    print((Path(args.out or bag / 'report') / 'report.md').read_text())
+    print((out / 'report.md').read_text())
     return 0 if m else 1
 
 

@@ -3,7 +3,8 @@
 Two independent readers: ``rosbags`` (``AnyReader``; types come from the definitions stored in the
 bag, so custom drift_msgs types need no build) and ``mcap`` (``mcap`` + ``mcap_ros2``). Both
 return the same shape, so report and replay tools can build on :func:`read_bag`. A bag whose
-recorder was killed (no MCAP summary) is repaired in place by :func:`reindex`.
+recorder was killed (no MCAP summary) is read by ``drift_tools.bag_salvage``'s scanner, never
+rewritten; ``scripts/bag.py recover`` writes a repaired copy.
 """
 from __future__ import annotations
 
@@ -79,6 +80,16 @@ def read_bag(bag_dir, topics=None, backend: str = 'rosbags') -> dict[str, list[B
     if backend not in BACKENDS:
         raise ValueError(f'backend must be one of {BACKENDS}, got {backend!r}')
     wanted = None if topics is None else set(topics)
+    if not is_finished(bag_dir):
+        return _read_salvaged(bag_dir, wanted)
+    try:
+        return _read_whole(bag_dir, wanted, backend)
+    except Exception as err:   # noqa: BLE001 - either library raises its own types on damage
+        logger.warning('%s: %s (%s); reading what is intact', bag_dir, type(err).__name__, err)
+        return _read_salvaged(bag_dir, wanted)
+
+
+def _read_whole(bag_dir, wanted, backend: str) -> dict[str, list[BagMessage]]:
     out: dict[str, list[BagMessage]] = {}
     if backend == 'rosbags':
         from rosbags.highlevel import AnyReader
@@ -107,66 +118,34 @@ def read_bag(bag_dir, topics=None, backend: str = 'rosbags') -> dict[str, list[B
     return out
 
 
-def reindex(bag_dir) -> int:
-    """Rewrite a bag whose recorder died (truncated MCAP, stale metadata) into a complete one.
-
-    Reads every whole record up to the truncation, writes a new MCAP with summary and index, and
-    a fresh ``metadata.yaml``. Returns the number of messages kept. A complete bag is left as is.
-    """
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap.writer import Writer
-
-    from drift_tools.bag_writer import write_metadata
-
-    bag_dir = Path(bag_dir)
-    mcaps = sorted(bag_dir.glob('*.mcap'))
-    if len(mcaps) != 1:
-        raise FileNotFoundError(f'{bag_dir}: expected one .mcap file, found {len(mcaps)}')
-    src = mcaps[0]
-    if _has_footer(src):
-        return bag_info(bag_dir).message_count
-    schemas, schema_names, channels, counts = {}, {}, {}, {}
-    t_min = t_max = None
-    tmp = src.with_suffix('.mcap.reindex')
-    with open(src, 'rb') as fin, open(tmp, 'wb') as fout:
-        writer = Writer(fout)
-        writer.start(profile='ros2', library='drift_tools.bag.reindex')
-        ids = {}
-        try:
-            for record in StreamReader(fin, skip_magic=False).records:
-                if isinstance(record, Schema) and record.id not in schemas:
-                    schemas[record.id] = writer.register_schema(record.name, record.encoding,
-                                                                record.data)
-                    schema_names[record.id] = record.name
-                elif isinstance(record, Channel) and record.id not in ids:
-                    ids[record.id] = writer.register_channel(
-                        record.topic, record.message_encoding, schemas.get(record.schema_id, 0),
-                        record.metadata)
-                    channels[record.id] = record
-                    counts[record.id] = 0
-                elif isinstance(record, Message) and record.channel_id in ids:
-                    writer.add_message(ids[record.channel_id], record.log_time, record.data,
-                                       record.publish_time, record.sequence)
-                    counts[record.channel_id] += 1
-                    t_min = record.log_time if t_min is None else min(t_min, record.log_time)
-                    t_max = record.log_time if t_max is None else max(t_max, record.log_time)
-        except (McapError, EOFError, ValueError, IndexError, OSError) as err:
-            logger.info('%s: truncated (%s); kept what came before', src.name, type(err).__name__)
-        writer.finish()
-    os.replace(tmp, src)
-    topics = [(ch.topic, schema_names.get(ch.schema_id, ''), counts[cid], '')
-              for cid, ch in channels.items()]
-    write_metadata(bag_dir, src.name, topics, t_min, t_max)
-    return sum(counts.values())
-
-
-def _has_footer(path: Path) -> bool:
-    size = path.stat().st_size
-    if size < 8 + 37:
+def is_finished(bag_dir) -> bool:
+    """True when the bag's MCAP file ends with its footer (the recorder closed it)."""
+    from drift_tools.bag_salvage import bag_file
+    path = bag_file(bag_dir)
+    if path.stat().st_size < 8 + 37:
         return False
     with open(path, 'rb') as fh:
         fh.seek(-8, os.SEEK_END)
         return fh.read(8) == b'\x89MCAP0\r\n'
 
+
+def _read_salvaged(bag_dir, wanted) -> dict[str, list[BagMessage]]:
+    """Decode what the salvage scanner reads of an unfinished or damaged bag (read-only)."""
+    from mcap_ros2.decoder import DecoderFactory
+
+    from drift_tools.bag_salvage import scan_bag
+    scan = scan_bag(bag_dir)
+    for line in scan.problems():
+        logger.warning('%s: %s', bag_dir, line)
+    factory, decoders, out = DecoderFactory(), {}, {}
+    for cid, channel in scan.channels.items():
+        if wanted is None or channel.topic in wanted:
+            out.setdefault(channel.topic, [])
+            decoders[cid] = factory.decoder_for(channel.message_encoding,
+                                                scan.schemas.get(channel.schema_id))
+    for m in sorted(scan.messages, key=lambda m: m.log_time):
+        decode = decoders.get(m.channel_id)
+        if decode is not None:
+            out[scan.channels[m.channel_id].topic].append(BagMessage(m.log_time * 1e-9,
+                                                                     decode(m.data)))
+    return out

@@ -7,12 +7,16 @@ decoding, and types unknown to this checkout still replay as long as the receivi
 from __future__ import annotations
 
 import importlib
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-from drift_tools.bag import bag_info
+from drift_tools.bag import bag_info, is_finished
+from drift_tools.bag_salvage import scan_bag
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -28,31 +32,41 @@ class RawMessage:
 def iter_raw(bag_dir, topics=None) -> Iterator[RawMessage]:
     """Yield the bag's messages in receive-time order, optionally only ``topics``.
 
-    A bag whose recorder was killed must be repaired first (``drift_tools.bag.reindex``); this
-    raises a clear error instead of silently replaying half a bag.
+    An unfinished or damaged bag (a killed recorder) is read by the salvage scanner, read-only;
+    what it could not read is logged.
     """
-    from mcap.reader import make_reader
-
     bag_dir = Path(bag_dir)
-    info = bag_info(bag_dir)
     wanted = None if topics is None else set(topics)
-    for name in info.files:
+    if is_finished(bag_dir):
+        yield from _iter_indexed(bag_dir, wanted)
+        return
+    scan = scan_bag(bag_dir)
+    for line in scan.problems():
+        logger.warning('%s: %s', bag_dir, line)
+    for m in sorted(scan.messages, key=lambda m: m.log_time):
+        channel = scan.channels[m.channel_id]
+        if wanted is None or channel.topic in wanted:
+            schema = scan.schemas.get(channel.schema_id)
+            yield RawMessage(channel.topic, _msgtype(schema), m.log_time, bytes(m.data))
+
+
+def _iter_indexed(bag_dir: Path, wanted) -> Iterator[RawMessage]:
+    from mcap.reader import make_reader
+    for name in bag_info(bag_dir).files:
         with open(bag_dir / name, 'rb') as fh:
             reader = make_reader(fh)
-            try:
-                summary = reader.get_summary()
-            except Exception as err:   # noqa: BLE001 - mcap raises several types for a bad file
-                raise ValueError(f'{bag_dir / name}: no readable summary ({err}); '
-                                 'repair it with drift_tools.bag.reindex first') from None
-            if summary is None:
-                raise ValueError(f'{bag_dir / name}: truncated (no summary); '
-                                 'repair it with drift_tools.bag.reindex first')
             for schema, channel, message in reader.iter_messages(
                     topics=None if wanted is None else sorted(wanted), log_time_order=True):
-                msgtype = schema.name if schema is not None else ''
-                if '/msg/' not in msgtype and msgtype.count('/') == 1:
-                    msgtype = msgtype.replace('/', '/msg/')
-                yield RawMessage(channel.topic, msgtype, message.log_time, bytes(message.data))
+                yield RawMessage(channel.topic, _msgtype(schema), message.log_time,
+                                 bytes(message.data))
+
+
+def _msgtype(schema) -> str:
+    """``pkg/msg/Name`` from an MCAP schema name (``pkg/msg/Name`` or ``pkg/Name``)."""
+    msgtype = schema.name if schema is not None else ''
+    if '/msg/' not in msgtype and msgtype.count('/') == 1:
+        msgtype = msgtype.replace('/', '/msg/')
+    return msgtype
 
 
 def message_class(msgtype: str):
