@@ -134,11 +134,13 @@ def main(argv=None) -> int:
     for spec in sorted(nodes, key=lambda n: n.module != RECORDER_MODULE):
         launcher.start(spec.name, node_command(spec, opts, stack.clock_owner), env,
                        stop_last=spec.module == RECORDER_MODULE,
-                       log_path=args.log_dir / f'{spec.name}.log' if args.log_dir else None)
+                       log_path=args.log_dir / f'{spec.name}.log' if args.log_dir else None,
+                       critical=spec.critical)
     outcome = launcher.wait(args.duration or None)
     codes = ', '.join(f'{name}={rc}' for name, rc in outcome.returncodes.items())
     print(f'[launch] stopped ({outcome.reason}); exit codes: {codes}'
-          + (f'; killed: {outcome.killed}' if outcome.killed else ''))
+          + (f'; killed: {outcome.killed}' if outcome.killed else '')
+          + (f'; died during the run: {outcome.lost}' if outcome.lost else ''))
     if args.bag is not None and not args.no_summary and (args.bag / 'metadata.yaml').exists():
         from drift_tools.summary import format_summary, summarize_bag
         print(format_summary(summarize_bag(args.bag)))

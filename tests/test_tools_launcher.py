@@ -40,11 +40,11 @@ def child(mode, delay=0.0):
     return [sys.executable, '-c', CHILD, mode, str(delay)]
 
 
-def run(children, duration=None, kill_timeout=5.0, stop_after=None):
+def run(children, duration=None, kill_timeout=5.0, stop_after=None, optional=()):
     out = io.StringIO()
     launcher = Launcher(out=out, colour=False, kill_timeout=kill_timeout)
     for name, argv, last in children:
-        launcher.start(name, argv, env=None, stop_last=last)
+        launcher.start(name, argv, env=None, stop_last=last, critical=name not in optional)
     if stop_after is not None:
         threading.Timer(stop_after, launcher.request_stop).start()
     t0 = time.monotonic()
@@ -67,6 +67,16 @@ def test_a_crashing_node_stops_the_rest_and_fails_the_run():
     assert outcome.reason == 'node-crash' and outcome.failed_node == 'bad'
     assert not outcome.ok and outcome.exit_code == 7
     assert elapsed < 5.0 and '[ok]  got SIGTERM' in lines
+
+
+def test_a_non_critical_node_dying_is_reported_and_the_rest_runs_on():
+    outcome, elapsed, lines = run([('ctl', child('run'), False), ('rec', child('crash', 0.2), True)],
+                                  duration=1.5, optional=('rec',))
+    assert outcome.reason == 'duration' and elapsed >= 1.5, 'the run must go on'
+    assert outcome.lost == ['rec'] and outcome.returncodes == {'ctl': 0, 'rec': 7}
+    assert not outcome.ok and outcome.exit_code == 7          # the exit code still says so
+    assert any('rec exited with code 7; it is not critical' in line for line in lines)
+    assert '[ctl] got SIGTERM' in lines
 
 
 def test_a_node_finishing_normally_ends_the_run_ok():
@@ -160,6 +170,8 @@ def test_project_stack_graphs():
         'drift_sim.nodes.sim_node', 'drift_control.nodes.reference_node',
         'drift_control.nodes.nmpc_node', RECORDER_MODULE]
     assert [n.name for n in cfg.graph('vehicle')] == ['bridge', 'reference', 'nmpc', 'recorder']
+    assert [n.name for n in cfg.graph('vehicle') if not n.critical] == ['recorder']
+    assert all(n.critical for n in cfg.graph('sim'))     # a sim run without its bag is no run
     assert [n.name for n in cfg.graph('sim', ['nmpc', 'sim'])] == ['sim', 'nmpc']
     with pytest.raises(ParamError, match='graphs: no graph .car.'):
         cfg.graph('car')
@@ -170,6 +182,8 @@ def test_project_stack_graphs():
 @pytest.mark.parametrize('text, key', [
     ('nodes: {}', 'graphs'),
     ('graphs: {sim: {sim: 3}}', 'stack.graphs.sim.sim'),
+    ('graphs: {sim: {sim: {module: m, critical: maybe}}}', 'stack.graphs.sim.sim.critical'),
+    ('graphs: {sim: {sim: {module: m, optional: true}}}', r"stack.graphs.sim.sim: unknown key\(s\) \['optional'\]"),
     ('graphs: {sim: {sim: m}}\nsim: {rate: 1}', 'stack.sim'),
     ('graphs: {sim: {sim: m}}\ndefaults: {clock: fast}', 'stack.defaults.clock'),
     ('graphs: {sim: {sim: m}}\ndefaults: {duration: 3}', 'stack.defaults'),

@@ -75,6 +75,11 @@ class BagWriter:
         """Topic name -> message type of every topic added so far."""
         return {t.name: t.msgtype for t in self._topics.values()}
 
+    @property
+    def bytes_written(self) -> int:
+        """Size of the MCAP file so far [bytes] (what is still in the open chunk not counted)."""
+        return self.mcap_path.stat().st_size if self._closed else self._stream.tell()
+
     def counts(self) -> dict[str, int]:
         """Topic name -> messages written so far."""
         return {t.name: t.count for t in self._topics.values()}
@@ -137,6 +142,23 @@ class BagWriter:
         self._closed = True
         self._write_metadata()
         logger.info('bag %s: %d messages', self.bag_dir, sum(self.counts().values()))
+
+    def abandon(self) -> None:
+        """Close the file as it is, without a summary (after a failed write: a full disk).
+
+        What earlier flushes wrote stays readable (``drift_tools.bag_salvage``).
+        """
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._stream.close()
+        except OSError:
+            pass
+        try:
+            self._write_metadata()
+        except OSError:
+            pass
 
     def __enter__(self):
         return self

@@ -36,6 +36,7 @@ class Proc:
     log_path: str | None = None          # the node's output also goes here, unprefixed
     reader: threading.Thread | None = None
     expected_exit: bool = False
+    critical: bool = True                # its exit stops the others; else reported, run goes on
 
 
 @dataclass
@@ -46,6 +47,7 @@ class Outcome:
     returncodes: dict = field(default_factory=dict)
     killed: list = field(default_factory=list)
     failed_node: str | None = None
+    lost: list = field(default_factory=list)    # non-critical nodes that died during the run
 
     @property
     def ok(self) -> bool:
@@ -55,10 +57,12 @@ class Outcome:
 
     @property
     def exit_code(self) -> int:
-        """The launcher's exit status: 0 when ``ok``, else the crashed node's code or 1."""
+        """The launcher's exit status: 0 when ``ok``, else the crashed (or lost) node's code
+        or 1."""
         if self.ok:
             return 0
-        rc = self.returncodes.get(self.failed_node) if self.failed_node else None
+        node = self.failed_node or (self.lost[0] if self.lost else None)
+        rc = self.returncodes.get(node) if node else None
         return rc if isinstance(rc, int) and 0 < rc < 256 else 1
 
 
@@ -115,16 +119,17 @@ class Launcher:
 
     # --- lifecycle ------------------------------------------------------------------------
     def start(self, name: str, argv: list, env: dict, stop_last: bool = False,
-              log_path: str | None = None) -> Proc:
+              log_path: str | None = None, critical: bool = True) -> Proc:
         """Start one node; its stdout and stderr are merged, prefixed and streamed.
 
         The node gets SIGTERM if the launcher dies without stopping it (killed), so no orphan
-        keeps publishing into the next run.
+        keeps publishing into the next run. A node that is not ``critical`` (the recorder on a
+        car) may die without stopping the others.
         """
         popen = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  stdin=subprocess.DEVNULL, start_new_session=True,
                                  preexec_fn=_term_with_parent)
-        proc = Proc(name, list(argv), popen, stop_last, log_path)
+        proc = Proc(name, list(argv), popen, stop_last, log_path, critical=critical)
         self.procs.append(proc)
         proc.reader = threading.Thread(target=self._pump, args=(proc, len(self.procs) - 1),
                                        daemon=True)
@@ -150,10 +155,12 @@ class Launcher:
         """Block until ``duration`` passes, a stop is requested or a node exits; then stop all.
 
         A node exiting non-zero on its own is a crash (``node-crash``); exiting 0 on its own
-        ends the run normally (``node-exit``, e.g. a scenario that finished).
+        ends the run normally (``node-exit``, e.g. a scenario that finished). A node that is not
+        critical is reported when it dies and the others run on; its exit code still counts in
+        the outcome.
         """
         deadline = None if not duration else time.monotonic() + duration
-        reason, failed = None, None
+        reason, failed, lost = None, None, set()
         while reason is None:
             if self._stop.wait(poll):
                 reason = self._stop_reason
@@ -161,12 +168,19 @@ class Launcher:
                 reason = 'duration'
             for p in self.procs:
                 rc = p.popen.poll()
-                if rc is not None and reason is None:
-                    failed = p.name
-                    reason = 'node-exit' if rc == 0 else 'node-crash'
-                    self._say(f'{p.name} exited with code {rc}; stopping the stack')
+                if rc is None or reason is not None or p.name in lost:
+                    continue
+                if not p.critical:
+                    lost.add(p.name)
+                    self._say(f'{p.name} exited with code {rc}; it is not critical: '
+                              'the others run on without it')
+                    continue
+                failed = p.name
+                reason = 'node-exit' if rc == 0 else 'node-crash'
+                self._say(f'{p.name} exited with code {rc}; stopping the stack')
         outcome = self.stop_all()
         outcome.reason, outcome.failed_node = reason, failed
+        outcome.lost = sorted(lost)
         return outcome
 
     def stop_all(self) -> Outcome:

@@ -24,10 +24,12 @@ SIM_MODULE = 'drift_sim.nodes.sim_node'
 
 @dataclass(frozen=True)
 class NodeSpec:
-    """One node of a graph: its ROS name and the module run with ``python -m``."""
+    """One node of a graph: its ROS name, the module run with ``python -m``, and whether the
+    graph stops when it dies (a recorder on a car must not end the drive)."""
 
     name: str
     module: str
+    critical: bool = True
 
 
 @dataclass(frozen=True)
@@ -64,10 +66,8 @@ def load_stack(path: str | os.PathLike) -> StackConfig:
         if not isinstance(nodes, dict) or not nodes:
             raise ParamError(f'stack.graphs.{gname}: expected a mapping node name -> module')
         specs = []
-        for nname, module in nodes.items():
-            if not isinstance(module, str) or not module:
-                raise ParamError(f'stack.graphs.{gname}.{nname}: expected a module name')
-            specs.append(NodeSpec(str(nname), module))
+        for nname, entry in nodes.items():
+            specs.append(_node_spec(f'stack.graphs.{gname}.{nname}', str(nname), entry))
         graphs[str(gname)] = tuple(specs)
     clock_owner = raw.get('clock_owner', 'sim')
     if not isinstance(clock_owner, str):
@@ -91,6 +91,22 @@ def load_stack(path: str | os.PathLike) -> StackConfig:
             raise ParamError(f'stack.{key}: expected exactly "ros__parameters:" with a mapping')
         node_params[str(key)] = section
     return StackConfig(graphs, node_params, clock_owner, dict(defaults))
+
+
+def _node_spec(key: str, name: str, entry) -> NodeSpec:
+    """``module`` or ``{module: ..., critical: false}``."""
+    if isinstance(entry, dict):
+        unknown = sorted(set(entry) - {'module', 'critical'})
+        if unknown:
+            raise ParamError(f'{key}: unknown key(s) {unknown}; have module, critical')
+        module, critical = entry.get('module'), entry.get('critical', True)
+        if not isinstance(critical, bool):
+            raise ParamError(f'{key}.critical: expected true or false, got {critical!r}')
+    else:
+        module, critical = entry, True
+    if not isinstance(module, str) or not module:
+        raise ParamError(f'{key}: expected a module name')
+    return NodeSpec(name, module, critical)
 
 
 def write_params_file(cfg: StackConfig, path: str | os.PathLike) -> Path:

@@ -32,7 +32,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     before the shutdown lands: an exception caused by an interrupt, or followed by the shutdown
     within ``SHUTDOWN_GRACE_S``, is the end of the run, not a failure; any other is raised. The
     node's ``close()``, if it has one, runs before the node is destroyed (flush a bag, release a
-    CAN bus).
+    CAN bus); a node that sets ``exit_code`` there (a recording that failed) exits with it.
     """
     stops.install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -61,6 +61,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
             close = getattr(node, 'close', None)
             if close is not None:
                 close()
+            code = code or int(getattr(node, 'exit_code', 0) or 0)
             node.destroy_node()
         rclpy.try_shutdown()
     return code

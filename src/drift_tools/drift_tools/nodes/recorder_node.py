@@ -3,12 +3,15 @@ import importlib
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Header
 
 from drift_control.nodes.spin import run_node
-from drift_control.params import config_dir
+from drift_control.params import ParamError, config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
+from drift_tools.disk import MIB, DiskLevel, DiskLimits, DiskWatch
 from drift_tools.recording import STACK_NAMESPACES, STACK_TOPICS, TopicSelector
 
 
@@ -31,6 +34,9 @@ class RecorderNode(Node):
 
     The stack's own topics are subscribed at once with the types and QoS the stack uses; polling
     the graph adds new topics and re-subscribes where publishers offer a weaker QoS (as rosbag2).
+    Its health is on ``/diagnostics`` once per ``health_period``: disk space (a warning before
+    it runs out, a clean stop just before) and write failures. A recording that stopped early
+    keeps the node alive, reporting, and makes it exit 1 at the end.
     """
 
     def __init__(self):
@@ -43,18 +49,29 @@ class RecorderNode(Node):
         period = self.declare_parameter('discovery_period', 1.0).value
         chunk_size = self.declare_parameter('chunk_size', DEFAULT_CHUNK_SIZE).value
         flush_period = self.declare_parameter('flush_period', 1.0).value
+        health_period = self.declare_parameter('health_period', 1.0).value
+        limits = DiskLimits(
+            warn_free=self.declare_parameter('disk_warn_free_mb', 2048.0).value * MIB,
+            warn_time_left=self.declare_parameter('disk_warn_minutes', 10.0).value * 60.0,
+            stop_free=self.declare_parameter('disk_stop_free_mb', 64.0).value * MIB)
         if not bag_dir:
-            raise ValueError('recorder: parameter bag_dir is required')
+            raise ParamError('recorder: parameter bag_dir is required')
         resolve = self.resolve_topic_name
         self._selector = TopicSelector(
             topics=tuple(resolve(t) for t in (*STACK_TOPICS, *extra) if t),
             namespaces=tuple(resolve(ns) for ns in namespaces if ns))
         self._writer = BagWriter(bag_dir, chunk_size=chunk_size)
+        self._disk = DiskWatch(self._writer.bag_dir, limits)
+        self.failure = ''          # why the recording stopped early; '' while it records
+        self._dropped = 0          # messages that came after that
+        self._warned_at = None
+        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self._subs = {}        # topic -> (subscription, type, QoS), or None: cannot record
         for topic, (msgtype, latched) in STACK_TOPICS.items():
             self._subscribe(resolve(topic), msgtype, make_qos(True, latched))
         self.create_timer(period, self._discover)
-        self.create_timer(flush_period, self._writer.flush)
+        self.create_timer(flush_period, self._flush)
+        self.create_timer(health_period, self._on_health)
         self.get_logger().info(f'recording to {bag_dir}')
 
     def _subscribe(self, topic, msgtype, qos):
@@ -70,10 +87,58 @@ class RecorderNode(Node):
         self._subs[topic] = (sub, msgtype, qos)
 
     def _on_message(self, topic, msgtype, data):
-        if topic not in self._writer.topics:       # the bag lists only topics that had data
-            self._writer.add_topic(topic, msgtype)
-            self.get_logger().info(f'recording {topic} [{msgtype}]')
-        self._writer.write(topic, data, time.time_ns())
+        if self.failure:
+            self._dropped += 1
+            return
+        try:
+            if topic not in self._writer.topics:       # the bag lists only topics that had data
+                self._writer.add_topic(topic, msgtype)
+                self.get_logger().info(f'recording {topic} [{msgtype}]')
+            self._writer.write(topic, data, time.time_ns())
+        except OSError as err:
+            self._stop_recording(f'write failed: {err.strerror or err}')
+
+    def _flush(self):
+        if self.failure:
+            return
+        try:
+            self._writer.flush()
+        except OSError as err:
+            self._stop_recording(f'write failed: {err.strerror or err}')
+
+    def _stop_recording(self, reason: str) -> None:
+        """End the bag early: closed with its summary if the disk lets us, else as flushed."""
+        self.failure = reason
+        try:
+            self._writer.close()
+        except OSError:
+            self._writer.abandon()
+            reason += '; bag left unfinished (scripts/bag.py recover)'
+        self.get_logger().error(f'recording stopped: {reason}; the bag keeps what came before')
+
+    def _on_health(self):
+        now = time.monotonic()
+        disk = self._disk.check(self._writer.bytes_written, now)
+        if not self.failure and disk.level == DiskLevel.STOP:
+            self._stop_recording(disk.message)
+        elif disk.level == DiskLevel.WARN and (self._warned_at is None
+                                               or now - self._warned_at > 60.0):
+            self._warned_at = now
+            self.get_logger().warning(disk.message)
+        status = DiagnosticStatus(name='recorder', hardware_id=str(self._writer.bag_dir))
+        if self.failure:
+            status.level = DiagnosticStatus.ERROR
+            status.message = f'not recording: {self.failure}'
+        else:
+            status.level = DiagnosticStatus.WARN if disk.level else DiagnosticStatus.OK
+            status.message = f'recording; {disk.message}'
+        values = {'messages': sum(self._writer.counts().values()), 'dropped': self._dropped,
+                  'bytes': self._writer.bytes_written, 'free_bytes': disk.free,
+                  'time_left_s': f'{disk.time_left:.0f}'}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        self._diag_pub.publish(DiagnosticArray(
+            header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
+
 
     def _discover(self):
         for topic, msgtype in self._selector.select(self.get_topic_names_and_types()):
@@ -98,8 +163,17 @@ class RecorderNode(Node):
                                    f'{qos.durability.name}')
 
     def close(self):
-        """Write the bag's summary and final metadata."""
-        self._writer.close()
+        """Write the bag's summary and final metadata; ``exit_code`` 1 if recording failed."""
+        if not self.failure:
+            try:
+                self._writer.close()
+            except OSError as err:
+                self._writer.abandon()
+                self.failure = f'closing the bag failed: {err.strerror or err}'
+        if self.failure:
+            self.exit_code = 1
+            self.get_logger().error(f'recording incomplete: {self.failure}; '
+                                    f'{self._dropped} messages not recorded')
 
 
 def main(args=None) -> int:
