@@ -17,6 +17,7 @@ from drift_vehicle_bridge.codec import Codec
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.nodes import convert
 from drift_vehicle_bridge.params import dbc_path, load_bridge_params
+from drift_vehicle_bridge.peers import HeartbeatWatch
 from drift_vehicle_bridge.replay import LogReplay
 
 
@@ -53,6 +54,9 @@ class BridgeNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self._recorder = HeartbeatWatch('recorder')    # not critical: reported, not needed
+        self._recorder_lost = False
+        self.create_subscription(DiagnosticArray, 'diagnostics', self._on_peer_diag, 10)
         self.create_service(SetBool, 'bridge/arm', self._on_arm)
         self.create_timer(params.cycle_time, self._on_tick)
         self.create_timer(self._diag_period, self._on_diag)
@@ -71,6 +75,11 @@ class BridgeNode(Node):
         self.get_logger().info(f'arm request {request.data}: {response.message}')
         return response
 
+    def _on_peer_diag(self, msg):
+        for status in msg.status:
+            if status.name == self._recorder.name:
+                self._recorder.report(convert.level_of(status), status.message, time.monotonic())
+
     def _on_tick(self):
         # one bus cycle per tick, never a catch-up burst: several command frames within a
         # millisecond would move the actuators at a multiple of the limited rate
@@ -83,8 +92,15 @@ class BridgeNode(Node):
 
     def _on_diag(self):
         stats = self._gw.stats()
-        self._diag_pub.publish(convert.stats_to_diagnostics(
-            stats, self._stats, self._diag_period, self.get_clock().now().to_msg(), self._hw))
+        diag = convert.stats_to_diagnostics(stats, self._stats, self._diag_period,
+                                            self.get_clock().now().to_msg(), self._hw)
+        recording = self._recorder.status(time.monotonic())
+        if recording is not None:
+            diag.status.append(convert.peer_status('vehicle_bridge: recording', *recording))
+            if recording[0] >= 2 and not self._recorder_lost:
+                self.get_logger().error(f'recording lost: {recording[1]}')
+            self._recorder_lost = recording[0] >= 2
+        self._diag_pub.publish(diag)
         self._stats = stats
 
     def close(self):

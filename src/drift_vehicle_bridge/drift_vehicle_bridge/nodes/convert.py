@@ -60,3 +60,14 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
     status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
     return DiagnosticArray(header=Header(stamp=stamp), status=[status])
+
+
+def peer_status(name: str, level: int, message: str) -> DiagnosticStatus:
+    """One DiagnosticStatus about another node (the recorder as the bridge sees it)."""
+    return DiagnosticStatus(name=name, level=bytes([level]), message=message)
+
+
+def level_of(status: DiagnosticStatus) -> int:
+    """A status's level as an int (rclpy gives the ``byte`` field as ``bytes``)."""
+    level = status.level
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
