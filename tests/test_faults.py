@@ -222,3 +222,119 @@ def test_a_negative_surface_friction_is_refused_not_read_as_the_named_surface():
     with pytest.raises(ParamError, match='surface.mu: must be in'):
         load_scenario_spec('steady_dry', ['surface.mu=-1'])
     assert load_scenario_spec('steady_dry', ['surface.mu=0.9']).surface.mu == 0.9
+
+
+@pytest.mark.parametrize('stamp_offset, why', [(-0.06, 'vehicle state stale (0.060 s old)'),
+                                              (0.06, 'vehicle state from the future (0.060 s')])
+def test_a_stale_or_future_state_gives_the_fallback_in_the_same_cycle(nmpc, vp, eq30,
+                                                                     stamp_offset, why):
+    """A state more than 50 ms off the node's clock: no plan is served without a measurement."""
+    now = _engaged(nmpc, eq30)
+    res = nmpc.step(_state(eq30, now + stamp_offset, 99), Reference(now, eq30, Direction.LEFT),
+                    now)
+    _assert_safe(res, vp, why)
+    now += TS
+    res = nmpc.step(_state(eq30, now, 100), Reference(now, eq30, Direction.LEFT), now)
+    assert res.status == NmpcStatus.OK, 'a fresh state is solved again (cold start)'
+
+
+def test_a_failing_solver_serves_the_plan_then_falls_back_within_limits(nmpc, vp, eq30,
+                                                                        monkeypatch):
+    now = _engaged(nmpc, eq30)
+    limit = load_nmpc_params().max_failures
+    monkeypatch.setattr(nmpc._solver, 'solve',
+                        lambda *a, **k: (_ for _ in ()).throw(RuntimeError('injected')))
+    statuses = []
+    for k in range(limit + 2):
+        t = now + k * TS
+        res = nmpc.step(_state(eq30, t, 200 + k), Reference(t, eq30, Direction.LEFT), t)
+        statuses.append(res.status)
+        c = res.command
+        assert all(math.isfinite(v) for v in (c.delta, c.delta_rate, c.drive_torque))
+        assert abs(c.delta) <= vp.limits.delta_max + 1e-9
+    assert statuses == [NmpcStatus.SHIFTED] * limit + [NmpcStatus.FALLBACK] * 2
+    _assert_safe(res, vp, 'solver raised RuntimeError: injected')
+    monkeypatch.undo()
+    t = now + (limit + 2) * TS
+    res = nmpc.step(_state(eq30, t, 300), Reference(t, eq30, Direction.LEFT), t)
+    assert res.status == NmpcStatus.OK, 'the repaired solver is used again'
+
+
+@pytest.mark.parametrize('field, value, why', [
+    ('delta', 0.9, 'steering 0.900 rad beyond'),
+    ('T_R', 1e5, 'torque 100000 Nm outside'),
+    ('V', -3.0, 'speed -3.00 m/s')])
+def test_an_infeasible_reference_is_named_and_never_solved_for(nmpc, vp, eq30, field, value,
+                                                               why):
+    now = _engaged(nmpc, eq30)
+    bad = dataclasses.replace(eq30, **{field: value})
+    statuses = []
+    for k in range(load_nmpc_params().max_failures + 1):
+        t = now + k * TS
+        res = nmpc.step(_state(eq30, t, 400 + k), Reference(t, bad, Direction.LEFT), t)
+        statuses.append(res.status)
+        assert f'reference infeasible: target {why}' in res.message, res.message
+    assert statuses[-1] == NmpcStatus.FALLBACK and NmpcStatus.OK not in statuses
+    _assert_safe(res, vp, 'reference infeasible')
+
+
+class _LossyBus:
+    """A python-can bus that loses a share of the frames it sends (seeded)."""
+
+    def __init__(self, bus, loss, seed):
+        self._bus, self.loss, self.lost = bus, loss, 0
+        self._rng = np.random.default_rng(seed)
+
+    def send(self, msg, timeout=None):
+        if self._rng.random() < self.loss:
+            self.lost += 1
+            return
+        self._bus.send(msg, timeout=timeout)
+
+    def __getattr__(self, name):
+        return getattr(self._bus, name)
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_twenty_percent_frame_loss_on_the_bus(vp, seed):
+    """20 % of the frames lost both ways: a state that goes stale drops the bridge to OFF in the
+    same 10 ms cycle (STATE_INVALID), nothing the car applies is ever out of its limits, and
+    after the drop the bridge requests nothing."""
+    import can
+    from drift_vehicle_bridge.gateway import Gateway
+    from drift_vehicle_bridge.mode import REQUIRED
+    from drift_vehicle_bridge.params import load_bridge_params
+    from drift_vehicle_bridge.vehicle_side import CarSide
+    params = load_bridge_params(None, {'auto_arm': True})
+    calm = VehicleState(stamp=0.0, V=8.0, beta=-0.05, r=0.4, vx=8.0, vy=-0.4,
+                        wheel_speeds=(24.0, 24.0, 24.5, 24.5), delta=0.03, drive_torque=400.0)
+    channel = f'faults_loss_{seed}'
+    with can.Bus(channel, interface='virtual') as car_bus, \
+            can.Bus(channel, interface='virtual') as our_bus:
+        car = CarSide(car_bus)
+        car.bus = _LossyBus(car_bus, 0.2, seed)
+        gw = Gateway(_LossyBus(our_bus, 0.2, seed + 100), car.codec, params, InputChecker(vp))
+        active, dropped_at, applied_after_drop = 0, None, []
+        for k in range(400):
+            now = 0.01 * k
+            car.send_state(dataclasses.replace(calm, stamp=now))
+            if k % 2 == 0:
+                gw.set_command(Command(now, -0.1, -0.2, 800.0, Mode.FULL), now)
+            state = gw.step(now)
+            applied = car.poll_command(now)
+            if applied is not None:
+                assert all(math.isfinite(v) for v in (applied.delta, applied.drive_torque))
+                assert abs(applied.delta) <= vp.limits.delta_max + 1e-9
+                assert vp.limits.T_R_min - 1.0 <= applied.drive_torque <= vp.limits.T_R_max + 1.0
+            if state is None or not state.has(REQUIRED):
+                assert not gw.mode.active, f'cycle {k}: stale state but still {gw.mode.name}'
+            if gw.mode.active:
+                active += 1
+            elif gw.been_active and dropped_at is None:
+                dropped_at = k
+                assert gw.modes.reason.name in ('STATE_INVALID', 'HEARTBEAT'), gw.modes.reason
+            if dropped_at is not None and k > dropped_at + 5:
+                applied_after_drop.append(applied)
+    assert gw.been_active, 'the bridge never became active through the loss'
+    assert car.bus.lost > 0.15 * car.frames_sent
+    assert all(a is None for a in applied_after_drop), 'the car applied requests after the drop'

@@ -123,21 +123,26 @@ class Nmpc:
 
     # --- one cycle -----------------------------------------------------------------------------
     def step(self, state: VehicleState | None, ref: Reference | None, now: float) -> NmpcResult:
-        """One control cycle at time ``now`` [s] (the clock of the state and reference stamps)."""
-        problem = self._input_problem(state, ref, now)
-        implausible = self.inputs.check(state) if state is not None and state.is_finite() \
-            and state.has(Validity.CONTROL) else None
+        """One control cycle at time ``now`` [s] (the clock of the state and reference stamps).
+
+        A state that is missing, non-finite, invalid, stale, from the future or implausible gives
+        the fallback in this cycle (no plan is served without a measurement to confirm it); a
+        reference problem or a solver failure serves the shifted plan for up to
+        ``max_failures`` cycles first. The next good state is solved from a cold start.
+        """
+        state_problem = self._state_problem(state, now)
+        ref_problem = self._reference_problem(ref, now) if state_problem is None else None
         tripped = self.supervisor.check(state, ref, self._last, now) \
             if self.supervisor is not None and self._engaged else None
         if tripped is not None:   # latched: no more solving into a car that does not follow
             result = self._fallback(state, ref, now, f'supervisor: {tripped}', 0.0, 0)
-        elif implausible is not None:   # no old plan on garbage: the fallback in this cycle
-            result = self._failed(state, ref, now, f'implausible vehicle state: {implausible}',
-                                  solve_time=0.0, iterations=0, shift=False)
-        elif problem is None:
-            result = self._solve(state, ref, now)
+        elif state_problem is not None:
+            result = self._failed(state, ref, now, state_problem, solve_time=0.0, iterations=0,
+                                  shift=False)
+        elif ref_problem is not None:
+            result = self._failed(state, ref, now, ref_problem, solve_time=0.0, iterations=0)
         else:
-            result = self._failed(state, ref, now, problem, solve_time=0.0, iterations=0)
+            result = self._solve(state, ref, now)
         self._last = result.command
         self._T_act = self._propagate_torque(result.command.drive_torque, state)
         return replace(result, stage_dt=self.params.dt)
@@ -152,8 +157,8 @@ class Nmpc:
             and math.isfinite(state.drive_torque) else request)
         return start + (1.0 - math.exp(-self.params.Ts / lag)) * (request - start)
 
-    def _input_problem(self, state, ref, now) -> str | None:
-        """Why the inputs cannot be used, or None."""
+    def _state_problem(self, state, now) -> str | None:
+        """Why the measured state cannot be used, or None."""
         age = self.params.max_input_age
         if state is None:
             return 'no vehicle state'
@@ -161,8 +166,18 @@ class Nmpc:
             return 'vehicle state not finite'
         if not state.has(Validity.CONTROL):
             return f'vehicle state invalid (validity {state.validity:#x})'
-        if not abs(now - state.stamp) <= age:
+        if now - state.stamp > age:
             return f'vehicle state stale ({now - state.stamp:.3f} s old)'
+        if state.stamp - now > age:
+            return f'vehicle state from the future ({state.stamp - now:.3f} s ahead)'
+        implausible = self.inputs.check(state)
+        if implausible is not None:
+            return f'implausible vehicle state: {implausible}'
+        return None
+
+    def _reference_problem(self, ref, now) -> str | None:
+        """Why the reference cannot be used, or None."""
+        age = self.params.max_input_age
         if ref is None:
             return 'no reference'
         if not ref.is_finite():
@@ -172,6 +187,22 @@ class Nmpc:
                     f'>= {self.params.N}')
         if not abs(now - ref.stamp) <= age:
             return f'reference stale ({now - ref.stamp:.3f} s old)'
+        return self._infeasible(ref)
+
+    def _infeasible(self, ref: Reference) -> str | None:
+        """Why the reference asks what the car cannot do (steering past lock, torque past its
+        limits, no forward speed), or None."""
+        b, tol = self.bounds, 1e-6
+        for k, eq in enumerate((ref.target, *ref.horizon)):
+            where = 'target' if k == 0 else f'stage {k - 1}'
+            if abs(eq.delta) > b.delta_max + tol:
+                return (f'reference infeasible: {where} steering {eq.delta:.3f} rad beyond the '
+                        f'{b.delta_max:.3f} rad lock')
+            if not b.T_R_min - tol <= eq.T_R <= b.T_R_max + tol:
+                return (f'reference infeasible: {where} torque {eq.T_R:.0f} Nm outside '
+                        f'[{b.T_R_min:.0f}, {b.T_R_max:.0f}] Nm')
+            if not eq.V > 0.0:
+                return f'reference infeasible: {where} speed {eq.V:.2f} m/s'
         return None
 
     def _solve(self, state: VehicleState, ref: Reference, now: float) -> NmpcResult:
