@@ -3,8 +3,8 @@
 The recorder hands over CDR bytes exactly as they came off the wire; nothing is deserialized.
 Chunks are small and :meth:`BagWriter.flush` closes the open one and rewrites ``metadata.yaml``, so
 a recorder killed with SIGKILL loses at most what arrived since the last flush (the file then lacks
-its summary; :func:`drift_tools.bag.reindex` restores it). :meth:`BagWriter.close` writes the
-summary and the final metadata.
+its summary; ``drift_tools.bag_salvage`` reads it and writes a repaired copy).
+:meth:`BagWriter.close` writes the summary and the final metadata.
 """
 from __future__ import annotations
 
