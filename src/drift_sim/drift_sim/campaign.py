@@ -1,0 +1,163 @@
+"""Campaigns: closed-loop runs as jobs (scenario x vehicle x plant draw x seed), run and stored.
+
+    jobs = campaign_jobs(['steady_dry'], ['gr86'], seeds=[0, 1], plants=10)
+    with make_executor(workers=2) as pool:                  # drift_sim.executor
+        rows = run_jobs(jobs, pool, RunStore('runs/c.jsonl'))
+    print(format_campaign(campaign_summary(rows)))          # drift_sim.sweep
+
+A job is data: the hash of its configuration keys the store (``drift_sim.store``), so running
+the same jobs again skips those already finished. A row is the job's configuration with the
+run's outcome, metrics (``drift_sim.sweep.run_seed``) and the command that replays it.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shlex
+import socket
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from drift_control.params import ParamError, config_dir, vehicle_file
+from drift_control.scenario import load_scenario_spec, scenario_file, scenario_names
+from drift_sim.population import draw, load_population
+from drift_sim.scenario import load_scenario
+from drift_sim.sweep import ERROR, outcome, run_seed
+
+
+@dataclass(frozen=True)
+class Job:
+    """One closed loop: a scenario on a vehicle's plant (nominal or drawn) with a seed."""
+
+    scenario: str
+    vehicle: str
+    seed: int                         # friction field, noise and driver
+    overrides: tuple[str, ...] = ()   # the campaign's ``key=value``s, then the plant draw's
+    draw: int | None = None           # index in the vehicle's population; None: nominal plant
+    plant_seed: int | None = None     # the population's seed (with ``draw``)
+    values: dict = field(default_factory=dict, compare=False)   # drawn u per parameter
+    config: str | None = None         # config directory; None: the checkout's
+
+    @property
+    def key(self) -> str:
+        """Hash of everything that decides the run (the drawn values are in the overrides)."""
+        text = json.dumps([self.scenario, self.vehicle, self.seed, list(self.overrides),
+                           self.draw, self.plant_seed, self.config])
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def replay_command(self) -> str:
+        """The ``scripts/simulate.py`` command line that runs this job alone."""
+        words = ['.venv/bin/python', 'scripts/simulate.py', '--scenario', self.scenario,
+                 '--vehicle', self.vehicle, '--seed', str(self.seed)]
+        for item in self.overrides:
+            words += ['--set', item]
+        if self.config:
+            words += ['--config-dir', self.config]
+        return ' '.join(shlex.quote(w) for w in words)
+
+    def row(self) -> dict:
+        """The job's full configuration as a store row's head."""
+        return {'key': self.key, 'scenario': self.scenario, 'vehicle': self.vehicle,
+                'seed': self.seed, 'draw': self.draw, 'plant_seed': self.plant_seed,
+                'overrides': list(self.overrides), 'values': dict(self.values),
+                'config': self.config, 'replay': self.replay_command()}
+
+
+def scenario_vehicle(scenario: str, overrides=(), config=None) -> str:
+    """The vehicle a scenario runs with these overrides (``vehicle:``, else the default)."""
+    return load_scenario_spec(scenario, overrides, config).vehicle
+
+
+def check_run(scenario: str, vehicle: str, overrides=(), config=None) -> None:
+    """Refuse an unknown scenario or vehicle, or bad overrides, before any run starts."""
+    file = scenario_file(scenario, config)
+    if not file.is_file():
+        raise ParamError(f'scenario {scenario!r}: no {file}; known scenarios: '
+                         f'{", ".join(scenario_names(config)) or "none"}')
+    vehicle_file(vehicle, config)
+    load_scenario(scenario, overrides, config, vehicle=vehicle)   # with its plant and path
+
+
+def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
+                  plant_seed: int = 0, config: str | None = None) -> list[Job]:
+    """Every scenario x vehicle x plant x seed, in that nesting; ParamError names bad input.
+
+    Parameters
+    ----------
+    plants : int
+        Draws ``0 .. plants - 1`` of each vehicle's population
+        (``config/sim/populations/<vehicle>.yaml``); 0: the nominal plant only.
+    overrides : iterable of str
+        ``key=value`` for every run (``duration=2``); the draws are relative to the plant they
+        leave.
+    """
+    overrides = tuple(overrides)
+    if plants < 0:
+        raise ParamError(f'plants: expected >= 0, got {plants}')
+    jobs = []
+    for scenario in scenarios:
+        for vehicle in vehicles:
+            check_run(scenario, vehicle, overrides, config)
+            if plants == 0:
+                jobs += [Job(scenario, vehicle, seed, overrides, config=config) for seed in seeds]
+                continue
+            population = load_population(vehicle, scenario, overrides, config)
+            for index in range(plants):
+                plant = draw(population, index, plant_seed)
+                jobs += [Job(scenario, vehicle, seed, overrides + plant.overrides, index,
+                             plant_seed, plant.values, config) for seed in seeds]
+    return jobs
+
+
+def run_job(job: Job) -> dict:
+    """Run one job in this process: its store row (``outcome`` is drift_sim.sweep's)."""
+    metrics, wall = run_seed(job.scenario, job.overrides, job.seed, job.config,
+                             vehicle=job.vehicle)
+    return {**job.row(), 'outcome': outcome(metrics), 'wall_s': wall,
+            'host': socket.gethostname(), 'finished': time.time(), 'metrics': metrics}
+
+
+def error_row(job: Job, err: BaseException) -> dict:
+    """The row of a job whose worker failed (not the closed loop: ``run_seed`` catches that)."""
+    first = (str(err).strip().splitlines() or [''])[0]
+    metrics = {'error': f'{type(err).__name__}: {first}'}
+    return {**job.row(), 'outcome': ERROR, 'wall_s': None, 'host': None,
+            'finished': time.time(), 'metrics': metrics}
+
+
+def run_jobs(jobs: list[Job], executor, store, progress: bool = True,
+             on_row=None) -> list[dict]:
+    """Run the jobs the store has not finished; return every job's row, in the jobs' order.
+
+    Each row is in the store before the next is looked at, so an interruption (Ctrl-C raises
+    KeyboardInterrupt here) loses no finished run. ``on_row(row)`` sees each new row.
+    """
+    todo = list({job.key: job for job in jobs if job.key not in store}.values())
+    if todo:
+        from tqdm import tqdm
+        done = len({job.key for job in jobs}) - len(todo)
+        counts: dict[str, int] = {}
+        with tqdm(total=done + len(todo), initial=done, unit='run', file=sys.stderr,
+                  disable=not progress, dynamic_ncols=True, smoothing=0.1) as bar:
+            for job, result in executor.map_unordered(run_job, todo):
+                row = result if isinstance(result, dict) else error_row(job, result)
+                store.add(row)
+                counts[row['outcome']] = counts.get(row['outcome'], 0) + 1
+                bar.set_postfix(counts, refresh=False)
+                bar.update(1)
+                if on_row is not None:
+                    on_row(row)
+    return [store.get(job.key) for job in jobs]
+
+
+def default_config(config: str | Path | None) -> str | None:
+    """A job's ``config``: None for the checkout's own directory (hashes stay portable)."""
+    if config is None or Path(config).resolve() == config_dir().resolve():
+        return None
+    return str(Path(config).resolve())
+
+
+__all__ = ['Job', 'campaign_jobs', 'check_run', 'default_config', 'error_row', 'run_job',
+           'run_jobs', 'scenario_vehicle']
