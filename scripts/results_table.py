@@ -2,27 +2,32 @@
 """Run every scenario (and the robustness variants) and write the README's results table.
 
     .venv/bin/python scripts/results_table.py [--jobs 2] [--seeds 0-9] [--only steady_dry,...]
-        [--no-readme]
+        [--no-readme] [--store runs/results_table.jsonl]
 
 Each row is ``drift_sim.closed_loop.run_closed_loop`` (the same loop as scripts/simulate.py) on
 every seed of ``--seeds``, measured in this run: the columns are the first seed's run, then how
 many seeds held the drift and the spread of their lateral error (``drift_sim.sweep``); the
-paper's figure for the same claim stands beside it. Writes docs/results.md and replaces the
-block between the results markers in README.md.
+paper's figure for the same claim stands beside it. The runs are a campaign of the nominal
+plant (``drift_sim.campaign``: Ray with ``--jobs`` processes, ``--jobs 1`` in this process),
+printed as they finish; ``--store`` keeps them so that an interrupted table resumes. Writes
+docs/results.md and replaces the block between the results markers in README.md, only once
+every row has run.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
-import multiprocessing
 import sys
 import time
 from pathlib import Path
 
-from drift_control.params import default_vehicle
+from drift_control.params import ParamError, default_vehicle
+from drift_sim.campaign import campaign_jobs, run_jobs, scenario_vehicle
+from drift_sim.executor import ClusterError, make_executor
+from drift_sim.store import RunStore
 from drift_sim.sweep import (LOST_BETA_RMS_DEG, LOST_E_Y_M, ROBUST, ROBUST_HIGH_MU,
-                             ROBUST_LOW_MU, outcome, parse_seeds, run_seed, summarise)
+                             ROBUST_LOW_MU, format_run, parse_seeds, summarise)
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = '<!-- results:start -->', '<!-- results:end -->'
@@ -52,12 +57,6 @@ RUNS = [
 def _vehicle(run) -> str:
     """The vehicle a row runs: its ``vehicle=`` override, else the scenario's."""
     return next((o.split('=', 1)[1] for o in run[2] if o.startswith('vehicle=')), '')
-
-
-def _run(job):
-    label, scenario, overrides, seed = job
-    metrics, secs = run_seed(scenario, overrides, seed)
-    return label, seed, metrics, secs
 
 
 def _fmt(value, spec):
@@ -105,7 +104,10 @@ def table(rows, seeds) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--jobs', type=int, default=2)
+    parser.add_argument('--jobs', type=int, default=2,
+                        help='processes (default 2, on Ray; 1: in this process)')
+    parser.add_argument('--store', help='keep finished runs in this JSON lines file: the same '
+                        'command resumes an interrupted table')
     parser.add_argument('--seeds', default='0-9',
                         help='seeds of every row, e.g. 0-9 (default) or 0; the first one fills '
                         'the metric columns')
@@ -132,28 +134,51 @@ def main(argv=None) -> int:
         seeds = parse_seeds(args.seeds)
     except ValueError as err:
         parser.error(str(err))
-    jobs = [(label, scenario, overrides, seed) for label, scenario, overrides, _ in runs
-            for seed in seeds]
+    if args.jobs < 1:
+        parser.error(f'--jobs: expected >= 1, got {args.jobs}')
+    try:
+        jobs = {run[0]: campaign_jobs([run[1]], [scenario_vehicle(run[1], run[2])], seeds,
+                                      overrides=run[2]) for run in runs}
+        store = RunStore(args.store)
+    except ParamError as err:
+        print(f'results_table: {err}', file=sys.stderr)
+        return 2
+    labels = {job.key: label for label, mine in jobs.items() for job in mine}
+    width = max(len(label) for label in jobs)
+
+    def show(row):
+        from tqdm import tqdm   # above the progress bar
+        tqdm.write(format_run(labels[row['key']], row['seed'], row['metrics'], row['wall_s'],
+                              width))
+
+    everything = [job for mine in jobs.values() for job in mine]
+    fresh = sum(1 for job in everything if job.key not in store)
     t0 = time.perf_counter()
-    if args.jobs > 1:
-        with multiprocessing.get_context('spawn').Pool(args.jobs) as pool:
-            results = pool.map(_run, jobs)
-    else:
-        results = [_run(j) for j in jobs]
+    try:
+        with make_executor(args.jobs) as pool:
+            run_jobs(everything, pool, store, on_row=show)
+    except ClusterError as err:
+        print(f'results_table: {err}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:   # a partial table must not replace the whole one
+        print('\nresults_table: interrupted; docs/results.md and README.md left as they are'
+              + (f'; finished runs are in {args.store}' if args.store else ''), file=sys.stderr)
+        return 130
     wall = time.perf_counter() - t0
-    for label, seed, m, secs in results:
-        print(f'{label:32s} seed {seed:3d} {secs:6.1f} s  ' + (
-              'ERROR ' + m['error'] if 'error' in m else
-              f"{outcome(m):7s} beta_rms={_fmt(m['beta_rms_error_deg'], '.2f')} "
-              f"e_y_max={_fmt(m['max_abs_e_y_m'], '.2f')}"))
+    results = [(label, job.seed, store.get(job.key)['metrics'])
+               for label, mine in jobs.items() for job in mine]
     rows, all_metrics = [], {}
     for run in runs:
-        mine = [(seed, m) for label, seed, m, _ in results if label == run[0]]
+        mine = [(seed, m) for label, seed, m in results if label == run[0]]
         rows.append((run, mine[0][1], summarise(mine)))
         all_metrics[run[0]] = {str(seed): m for seed, m in mine}
+    measured = f'{len(results)} runs in {wall:.0f} s wall on {args.jobs} process(es)'
+    if fresh < len(results):
+        measured = (f'{len(results)} runs, {fresh} of them in {wall:.0f} s wall on '
+                    f'{args.jobs} process(es), the rest from its store')
     text = (f'{table(rows, seeds)}\n\n'
-            f'Measured by `scripts/results_table.py` in one run ({len(jobs)} runs, {wall:.0f} s '
-            f'wall on {args.jobs} process(es)); plant = `drift_sim` double-track model, '
+            f'Measured by `scripts/results_table.py` ({measured}); '
+            f'plant = `drift_sim` double-track model, '
             f'controller = single-track NMPC (model mismatch by design). The metric columns are '
             f'seed {seeds[0]}; "held" counts the seeds that neither spun, tripped the supervisor '
             f'nor lost the drift (sideslip RMS error > {LOST_BETA_RMS_DEG:g} deg or lateral '
@@ -165,7 +190,7 @@ def main(argv=None) -> int:
     if partial:   # a subset must not replace the whole table
         print(text)
         print('a subset of the rows: docs/results.md and README.md left as they are')
-        return 0 if all('error' not in m for _, _, m, _ in results) else 1
+        return 0 if all('error' not in m for _, _, m in results) else 1
     (ROOT / 'docs').mkdir(exist_ok=True)
     (ROOT / 'docs' / 'results.md').write_text('# Closed-loop results\n\n' + text)
     if not args.no_readme:
@@ -177,7 +202,7 @@ def main(argv=None) -> int:
         else:
             print('README.md has no results markers; wrote docs/results.md only', file=sys.stderr)
     print(f'wrote docs/results.md ({wall:.0f} s)')
-    return 0 if all('error' not in m for _, _, m, _ in results) else 1
+    return 0 if all('error' not in m for _, _, m in results) else 1
 
 
 if __name__ == '__main__':

@@ -155,6 +155,20 @@ def format_summary(name: str, summary: dict) -> str:
                                                         else ''))
 
 
+def format_run(name: str, seed: int, metrics: dict, secs: float | None = None,
+               width: int = 18) -> str:
+    """One line for one run: its outcome, sideslip RMS error, max |e_y| and flip time."""
+    def fmt(value):
+        return '-' if value is None else f'{value:.2f}'
+    took = f'  ({secs:.0f} s)' if secs is not None else ''
+    if 'error' in metrics:
+        return f'{name:{width}s} seed {seed:3d}  error: {metrics["error"]}{took}'
+    return (f"{name:{width}s} seed {seed:3d}  {outcome(metrics):7s} "
+            f"beta RMS {fmt(metrics.get('beta_rms_error_deg'))} deg  "
+            f"max |e_y| {fmt(metrics.get('max_abs_e_y_m'))} m  "
+            f"flip {fmt(metrics.get('transition_time_s'))} s{took}")
+
+
 # --- campaigns: rows of drift_sim.campaign grouped by scenario and vehicle --------------------
 
 # worst first: an error says least about the controller but most that something is broken
@@ -277,5 +291,5 @@ def format_campaign(summary: dict) -> str:
 
 
 __all__ = ['ERROR', 'HELD', 'LOST', 'SEVERITY', 'SPUN', 'TRIPPED', 'as_expected',
-           'campaign_summary', 'format_campaign', 'format_summary', 'outcome', 'parse_seeds',
-           'run_seed', 'summarise', 'wilson_interval']
+           'campaign_summary', 'format_campaign', 'format_run', 'format_summary', 'outcome',
+           'parse_seeds', 'run_seed', 'summarise', 'wilson_interval']
