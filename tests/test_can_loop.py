@@ -117,7 +117,7 @@ def _bridge_diagnostics(messages):
     out = []
     for m in messages.get('/diagnostics', []):
         for status in m.msg.status:
-            if status.name.startswith('vehicle_bridge'):
+            if status.name == 'vehicle_bridge: CAN':   # not its 'recording' status
                 out.append({kv.key: kv.value for kv in status.values})
                 out[-1]['_t'] = m.msg.header.stamp.sec + 1e-9 * m.msg.header.stamp.nanosec
     return out

@@ -167,6 +167,43 @@ def test_input_limits_are_validated():
     assert np.isclose(load_nmpc_params().inputs.V_max, InputLimits().V_max)
 
 
+def test_the_bridge_drops_to_off_on_a_frozen_state(vp):
+    """Alive counters advance, the values do not: OFF once the window (200 ms) has passed."""
+    import can
+    from drift_vehicle_bridge.gateway import Gateway
+    from drift_vehicle_bridge.params import load_bridge_params
+    from drift_vehicle_bridge.vehicle_side import CarSide
+    params = load_bridge_params(None, {'auto_arm': True})
+    limits = load_nmpc_params().inputs.for_period(params.cycle_time, TS)
+    assert limits.freeze_cycles == 20
+    calm = VehicleState(stamp=0.0, V=8.0, beta=-0.05, r=0.4, vx=8.0, vy=-0.4,
+                        wheel_speeds=(24.0, 24.0, 24.5, 24.5), delta=0.03, drive_torque=400.0)
+    with can.Bus('faults_frozen', interface='virtual') as car_bus, \
+            can.Bus('faults_frozen', interface='virtual') as our_bus:
+        car = CarSide(car_bus)
+        gw = Gateway(our_bus, car.codec, params, InputChecker(vp, limits))
+        modes = []
+        for k in range(100):
+            now = 0.01 * k
+            V = calm.V if k >= 40 else _noisy(calm.V, k)     # frozen from cycle 40 on
+            car.send_state(dataclasses.replace(calm, stamp=now, V=V))
+            if k >= 10:
+                gw.set_command(Command(now, -0.1, 0.0, 800.0, Mode.FULL), now)
+            gw.step(now)
+            car.poll_command(now)
+            modes.append(gw.mode.name)
+    first_off = modes.index('OFF', 20)
+    assert modes[20:58] == ['ACTIVE_FULL'] * 38 and 58 <= first_off <= 60, modes[50:62]
+    assert gw.modes.reason.name == 'STATE_INVALID' and 'frozen' in gw.modes.implausible
+
+
+def test_a_parked_car_is_not_a_frozen_sensor(vp):
+    checker = InputChecker(vp, InputLimits(freeze_cycles=3))
+    parked = VehicleState(stamp=0.0, V=0.0, beta=0.0, r=0.0, wheel_speeds=(0.0,) * 4)
+    assert all(checker.check(dataclasses.replace(parked, stamp=0.02 * k)) is None
+               for k in range(50))
+
+
 def test_the_bridge_drops_to_off_on_an_impossible_wheel_speed(vp):
     """The car side gets the same physical bounds: ACTIVE -> OFF in the cycle it arrives."""
     import can
@@ -184,7 +221,7 @@ def test_the_bridge_drops_to_off_on_an_impossible_wheel_speed(vp):
         for k in range(60):
             now = 0.01 * k
             bad = k >= 40
-            car.send_state(dataclasses.replace(calm, stamp=now, wheel_speeds=(
+            car.send_state(dataclasses.replace(calm, stamp=now, V=_noisy(calm.V, k), wheel_speeds=(
                 (24.0, 24.0, -90.0, -90.0) if bad else calm.wheel_speeds)))
             if k >= 10:
                 gw.set_command(Command(now, -0.1, 0.0, 800.0, Mode.FULL), now)
@@ -278,6 +315,11 @@ def test_an_infeasible_reference_is_named_and_never_solved_for(nmpc, vp, eq30, f
     _assert_safe(res, vp, 'reference infeasible')
 
 
+def _noisy(value, k):
+    """A measured value as a sensor gives it: moving in its last digits (0.01 per DBC bit)."""
+    return value + 0.02 * math.sin(1.7 * k)
+
+
 class _LossyBus:
     """A python-can bus that loses a share of the frames it sends (seeded)."""
 
@@ -317,7 +359,7 @@ def test_twenty_percent_frame_loss_on_the_bus(vp, seed):
         active, dropped_at, applied_after_drop = 0, None, []
         for k in range(400):
             now = 0.01 * k
-            car.send_state(dataclasses.replace(calm, stamp=now))
+            car.send_state(dataclasses.replace(calm, stamp=now, V=_noisy(calm.V, k)))
             if k % 2 == 0:
                 gw.set_command(Command(now, -0.1, -0.2, 800.0, Mode.FULL), now)
             state = gw.step(now)

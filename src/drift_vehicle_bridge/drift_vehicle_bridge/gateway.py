@@ -42,7 +42,7 @@ class Gateway:
         Validated bridge parameters.
     checker : drift_control.plausibility.InputChecker, optional
         The vehicle's physical bounds on a measured state (wheel speeds against the speed, the
-        steering lock): an implausible state is an invalid one.
+        steering lock) and the frozen-sensor check: an implausible state is an invalid one.
     """
 
     def __init__(self, bus: can.BusABC | None, codec: Codec, params: BridgeParams,

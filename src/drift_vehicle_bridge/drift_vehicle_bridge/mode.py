@@ -52,7 +52,7 @@ class ModeManager:
 
     def __init__(self, params: ModeParams, checker=None):
         self.p = params
-        self.checker = checker     # drift_control.plausibility.InputChecker: physical bounds
+        self.checker = checker     # drift_control.plausibility.InputChecker: bounds, frozen
         self.mode = BridgeMode.OFF
         self.reason = DropReason.NONE
         self.implausible: str | None = None   # why the last state was not believed
@@ -67,8 +67,8 @@ class ModeManager:
         """
         if state is None or not state.is_finite() or not state.has(REQUIRED):
             return DropReason.STATE_INVALID
-        self.implausible = self.checker.bounds(state) if self.checker is not None else None
-        if self.implausible is not None:   # finite but impossible (a wheel speed, the steering)
+        self.implausible = self.checker.check(state) if self.checker is not None else None
+        if self.implausible is not None:   # impossible (a wheel speed, the steering) or frozen
             return DropReason.STATE_INVALID
         if stack_steers and abs(state.steering_torque) > self.p.steering_torque_takeover:
             return DropReason.DRIVER_TORQUE

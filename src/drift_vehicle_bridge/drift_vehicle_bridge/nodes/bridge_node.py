@@ -1,6 +1,7 @@
 """The vehicle bridge node: CAN gateway <-> vehicle/state, drift/command, diagnostics."""
 import sys
 import time
+from pathlib import Path
 
 import can
 from diagnostic_msgs.msg import DiagnosticArray
@@ -10,6 +11,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.nodes.spin import run_node
+from drift_control.ocp import load_nmpc_params
 from drift_control.params import config_dir, load_vehicle, parse_overrides
 from drift_control.plausibility import InputChecker
 from drift_control.scenario import load_scenario_spec
@@ -43,7 +45,9 @@ class BridgeNode(Node):
             overrides['auto_arm'] = True
         params = load_bridge_params(cfg, overrides, vehicle or None)
         codec = Codec.load(dbc_path(params, cfg))
-        checker = InputChecker(load_vehicle(vehicle or None, cfg))
+        nmpc = load_nmpc_params(Path(cfg) / 'nmpc.yaml')   # the controller's input limits
+        checker = InputChecker(load_vehicle(vehicle or None, cfg),
+                               nmpc.inputs.for_period(params.cycle_time, nmpc.Ts))
         self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params,
                            checker)
         self._replay = LogReplay(log_file) if log_file else None
