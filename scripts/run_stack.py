@@ -94,6 +94,12 @@ def main(argv=None) -> int:
             args.bag = args.bag.resolve()
             if (args.bag / 'metadata.yaml').exists():
                 raise ParamError(f'--bag {args.bag}: a bag is already there')
+            try:
+                args.bag.mkdir(parents=True, exist_ok=True)
+            except OSError as err:
+                raise ParamError(f'--bag {args.bag}: cannot create it ({err.strerror})') from None
+            if not os.access(args.bag, os.W_OK):
+                raise ParamError(f'--bag {args.bag}: not writable')
         elif any(n.module == RECORDER_MODULE for n in nodes):
             print('[launch] no --bag given: not starting the recorder', file=sys.stderr)
             nodes = [n for n in nodes if n.module != RECORDER_MODULE]

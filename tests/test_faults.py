@@ -380,3 +380,15 @@ def test_twenty_percent_frame_loss_on_the_bus(vp, seed):
     assert gw.been_active, 'the bridge never became active through the loss'
     assert car.bus.lost > 0.15 * car.frames_sent
     assert all(a is None for a in applied_after_drop), 'the car applied requests after the drop'
+
+
+def test_an_unwritable_bag_or_an_empty_metadata_file_is_one_line(capsys, tmp_path):
+    from conftest import load_script
+    assert load_script('run_stack').main(['--bag', '/proc/no_such/bag', '--duration', '1']) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith('run_stack: --bag /proc/no_such/bag: cannot create it'), err
+    assert len(err.splitlines()) == 1
+    from drift_tools.bag import bag_info
+    (tmp_path / 'metadata.yaml').write_text('')
+    with pytest.raises(ValueError, match='not a rosbag2 metadata file'):
+        bag_info(tmp_path)

@@ -52,17 +52,23 @@ class BagInfo:
 def bag_info(bag_dir) -> BagInfo:
     """Read ``metadata.yaml`` of a rosbag2 directory."""
     bag_dir = Path(bag_dir)
-    with open(bag_dir / 'metadata.yaml', encoding='utf-8') as fh:
-        info = yaml.safe_load(fh)['rosbag2_bagfile_information']
-    topics = {}
-    for entry in info.get('topics_with_message_count') or []:
-        meta = entry['topic_metadata']
-        topics[meta['name']] = TopicInfo(meta['name'], meta['type'], int(entry['message_count']))
-    return BagInfo(bag_dir, topics,
-                   start=info['starting_time']['nanoseconds_since_epoch'] * 1e-9,
-                   duration=info['duration']['nanoseconds'] * 1e-9,
-                   message_count=int(info['message_count']),
-                   files=tuple(info.get('relative_file_paths') or ()))
+    try:
+        with open(bag_dir / 'metadata.yaml', encoding='utf-8') as fh:
+            info = yaml.safe_load(fh)['rosbag2_bagfile_information']
+        topics = {}
+        for entry in info.get('topics_with_message_count') or []:
+            meta = entry['topic_metadata']
+            topics[meta['name']] = TopicInfo(meta['name'], meta['type'],
+                                             int(entry['message_count']))
+        return BagInfo(bag_dir, topics,
+                       start=info['starting_time']['nanoseconds_since_epoch'] * 1e-9,
+                       duration=info['duration']['nanoseconds'] * 1e-9,
+                       message_count=int(info['message_count']),
+                       files=tuple(info.get('relative_file_paths') or ()))
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, ValueError) as err:
+        raise ValueError(f'{bag_dir / "metadata.yaml"}: not a rosbag2 metadata file '
+                         f'({type(err).__name__}: {err}); scripts/bag.py info reads the MCAP '
+                         'without it') from None
 
 
 def read_bag(bag_dir, topics=None, backend: str = 'rosbags') -> dict[str, list[BagMessage]]:
