@@ -121,3 +121,15 @@ def test_a_full_disk_stops_the_recording_not_the_run(tmp_path):
     assert 'Traceback' not in out, out[-3000:]
     states = read_bag(tmp_path / 'bag_copy', topics=['/vehicle/state'])['/vehicle/state']
     assert len(states) > 50
+
+
+@pytest.mark.parametrize('param, says', [
+    ('duration:=-1.0', 'sim: duration must be a time > 0 s'),
+    ('duration:=6', "Trying to set parameter 'duration' to '6' of type 'INTEGER'")])
+def test_a_bad_node_parameter_is_one_line_and_exit_1(param, says):
+    env = {**os.environ, 'ROS_DOMAIN_ID': '128', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    proc = subprocess.run([sys.executable, '-m', 'drift_sim.nodes.sim_node', '--ros-args', '-p',
+                           param], env=env, capture_output=True, text=True, timeout=60)
+    out = (proc.stdout + proc.stderr).strip()
+    assert proc.returncode == 1 and says in out and 'Traceback' not in out, out
+    assert len(out.splitlines()) == 1, out

@@ -6,6 +6,7 @@ import time
 from typing import Callable
 
 import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
@@ -26,7 +27,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     remembered whenever it comes, from the node module's first import on, and ends the spin
     within ``STOP_POLL_S`` (exit 0). A node with a ``finished`` future (the simulator at the end
     of its scenario) ends the run when it completes: exit 0 with the result True, 1 with False
-    (a failed run, its reason logged). A bad parameter (``ParamError``) is one line, exit 1.
+    (a failed run, its reason logged). A bad parameter (``ParamError``, or a value of the wrong
+    type for rclpy) is one line, exit 1.
     A context shut down while a callback runs (``rclpy.shutdown`` from elsewhere) makes rclpy
     raise from there (``RCLError`` on a publish, ``RuntimeError`` on a take), possibly just
     before the shutdown lands: an exception caused by an interrupt, or followed by the shutdown
@@ -48,7 +50,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
             node.get_logger().info(f'stopping on {signal.Signals(stops.STOPS[0]).name}')
         if finished is not None and finished.done() and finished.result() is False:
             code = 1   # the node ended the run for a reason it logged
-    except ParamError as err:
+    except (ParamError, InvalidParameterTypeException, InvalidParameterValueException) as err:
         rclpy.logging.get_logger(name).error(str(err))
         code = 1
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -53,6 +53,13 @@ class SimNode(Node):
         can_interface = self.declare_parameter('can_interface', 'virtual').value
         can_channel = self.declare_parameter('can_channel', 'drift').value
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
+        for name, value in (('duration', duration), ('command_period', period),
+                            ('lockstep_timeout', timeout), ('startup_timeout', startup),
+                            ('command_timeout', self._command_timeout)):
+            if not 0.0 <= value < float('inf') or (value == 0.0 and name != 'duration'):
+                raise ParamError(f'sim: {name} must be a time > 0 s'
+                                 + (' (0: the scenario\'s)' if name == 'duration' else '')
+                                 + f', got {value!r}')
         if self._mode not in ('realtime', 'lockstep'):
             raise ParamError(f"sim: clock_mode must be 'realtime' or 'lockstep', "
                              f'got {self._mode!r}')
