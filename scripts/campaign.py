@@ -99,8 +99,7 @@ def main(argv=None) -> int:
     print(f'campaign: {len(jobs)} runs ({len(scenarios)} scenario(s) x {len(vehicles)} '
           f'vehicle(s) x {max(args.plants, 1)} plant(s) x {len(seeds)} seed(s)); '
           f'{len(jobs) - todo} already in {args.store}', file=sys.stderr)
-    # `kill` stops like Ctrl-C: the finished runs stay, the workers are released
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    previous = signal.getsignal(signal.SIGTERM)
     t0 = time.perf_counter()
     try:
         rows = _run(jobs, todo, store, args)
@@ -132,6 +131,9 @@ def _run(jobs, todo, store, args) -> list[dict]:
     if not todo:   # everything finished already: no workers to start
         return [store.get(job.key) for job in jobs]
     with make_executor(args.jobs, args.address) as pool:
+        # `kill` stops like Ctrl-C: the finished runs stay, the workers are released (set
+        # after Ray's start, whose own SIGTERM handler would end the process at once)
+        signal.signal(signal.SIGTERM, _interrupt)
         return run_jobs(jobs, pool, store, progress=not args.quiet)
 
 

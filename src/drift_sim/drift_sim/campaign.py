@@ -141,14 +141,18 @@ def run_jobs(jobs: list[Job], executor, store, progress: bool = True,
         counts: dict[str, int] = {}
         with tqdm(total=done + len(todo), initial=done, unit='run', file=sys.stderr,
                   disable=not progress, dynamic_ncols=True, smoothing=0.1) as bar:
-            for job, result in executor.map_unordered(run_job, todo):
-                row = result if isinstance(result, dict) else error_row(job, result)
-                store.add(row)
-                counts[row['outcome']] = counts.get(row['outcome'], 0) + 1
-                bar.set_postfix(counts, refresh=False)
-                bar.update(1)
-                if on_row is not None:
-                    on_row(row)
+            results = executor.map_unordered(run_job, todo)
+            try:
+                for job, result in results:
+                    row = result if isinstance(result, dict) else error_row(job, result)
+                    store.add(row)
+                    counts[row['outcome']] = counts.get(row['outcome'], 0) + 1
+                    bar.set_postfix(counts, refresh=False)
+                    bar.update(1)
+                    if on_row is not None:
+                        on_row(row)
+            finally:   # interrupted: the executor stops what still runs, now
+                results.close()
     return [store.get(job.key) for job in jobs]
 
 

@@ -243,8 +243,8 @@ def campaign_summary(rows: list[dict], worst: int = 10) -> dict:
 
     worst_rows = sorted(rows, key=badness)[:worst]
     return {'runs': len(rows), 'held': sum(g['held'] for g in out), 'groups': out,
-            'worst': [{k: r.get(k) for k in ('scenario', 'vehicle', 'seed', 'draw', 'outcome',
-                                            'replay')}
+            'worst': [{k: r.get(k) for k in ('scenario', 'vehicle', 'seed', 'draw', 'replay')}
+                      | {'outcome': outcome(r['metrics'])}
                       | {k: r['metrics'].get(k) for k in ('event_t_s', 'event_s_m',
                                                           'max_abs_e_y_m', 'beta_rms_error_deg',
                                                           'error')}
