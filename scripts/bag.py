@@ -28,6 +28,15 @@ def info(args) -> int:
         schema = scan.schemas.get(channel.schema_id)
         print(f'  {channel.topic} [{schema.name if schema else "?"}]: '
               f'{counts.get(channel.topic, 0)}')
+    from drift_tools.run_info import read_run_info
+    run = read_run_info(args.bag)
+    if run:
+        dirty = ' (with uncommitted changes)' if run.get('dirty') == 'true' else ''
+        vehicle = run.get('vehicle') or "(the scenario's)"
+        seed = run.get('seed') or "(the scenario's)"
+        print(f'  run: scenario {run.get("scenario") or "?"}, vehicle {vehicle}, seed {seed}, '
+              f'overrides {run.get("overrides")}, commit {run.get("commit", "")[:12]}{dirty}')
+        print(f'  command: {run.get("command_line", "")}')
     problems = scan.problems()
     for line in problems:
         print(f'  problem: {line}')

@@ -95,6 +95,11 @@ def _clock(t_ns: int):
 
 def rerun(args) -> int:
     from drift_tools.rerun import rerun_controller
+    from drift_tools.run_info import read_run_info, run_scenario
+    spec = run_scenario(read_run_info(args.bag))   # the car and surface the run drove
+    if spec is not None:
+        args.vehicle = args.vehicle or spec.vehicle
+        args.surface = args.surface or spec.surface.name
     try:
         result = rerun_controller(Path(args.bag), control_mode=args.control_mode,
                                   surface=args.surface, vehicle=args.vehicle)
@@ -120,9 +125,10 @@ def main(argv=None) -> int:
     parser.add_argument('--discovery-timeout', type=float, default=5.0, help='[s]')
     parser.add_argument('--rerun', action='store_true', help='re-run the NMPC core offline')
     parser.add_argument('--control-mode', default='full', choices=('full', 'torque_only'))
-    parser.add_argument('--surface', help='friction the NMPC assumes (default dry)')
-    parser.add_argument('--vehicle',
-                        help='the car the run drove (default: config/defaults.yaml\'s)')
+    parser.add_argument('--surface', help='friction the NMPC assumes (default: the recorded '
+                        'run\'s scenario, else dry)')
+    parser.add_argument('--vehicle', help='the car the run drove (default: the recorded run\'s, '
+                        'else config/defaults.yaml\'s)')
     parser.add_argument('--json', help='with --rerun: write the comparison here')
     args = parser.parse_args(argv)
     if not (Path(args.bag) / 'metadata.yaml').exists():

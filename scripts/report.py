@@ -3,8 +3,9 @@
 
     report.py BAG [--out DIR] [--scenario NAME] [--no-figures]
 
-Steady-drift windows come from the scenario's ``metrics`` section when ``--scenario`` is given,
-else from the recorded reference (where its sideslip holds its plateau). Output goes to
+Steady-drift windows come from the scenario's ``metrics`` section: ``--scenario``, else the one
+the bag's run metadata names; for a bag without them, from the recorded reference (where its
+sideslip holds its plateau). Output goes to
 ``BAG_report/`` beside the bag by default: metrics.json, report.md, states.png, inputs.png,
 path.png, solve_time.png. The bag is only read; one whose recorder was killed is read as far as
 it is intact (``scripts/bag.py recover`` writes a repaired copy).
@@ -33,9 +34,16 @@ def main(argv=None) -> int:
         print(f'report: {bag}: not a bag directory (no metadata.yaml)', file=sys.stderr)
         return 2
     windows = transient_end = None
-    if args.scenario:
-        from drift_sim.scenario import load_scenario
-        scenario = load_scenario(args.scenario).scenario
+    from drift_control.params import ParamError
+    from drift_control.scenario import load_scenario_spec
+    from drift_tools.run_info import read_run_info, run_scenario
+    try:
+        scenario = load_scenario_spec(args.scenario) if args.scenario else \
+            run_scenario(read_run_info(bag))     # the run's own, from the bag's metadata
+    except (ParamError, BagDamagedError, ValueError) as err:
+        print(f'report: {err}', file=sys.stderr)
+        return 2
+    if scenario is not None:
         windows = [list(w) for w in scenario.metrics.steady]
         transient_end = scenario.metrics.transient_end
     try:

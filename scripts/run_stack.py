@@ -11,13 +11,14 @@ With --bag, a summary read back from the bag is printed at the end.
 """
 import argparse
 import importlib.util
+import json
 import os
 import sys
 import tempfile
 from pathlib import Path
 
 from drift_control.assembly import load_setup
-from drift_control.params import ParamError, config_dir, vehicle_file
+from drift_control.params import ParamError, config_dir, split_override, vehicle_file
 from drift_tools.launcher import Launcher
 from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, SIM_MODULE,
                                RunOptions,
@@ -33,6 +34,39 @@ def _seconds(text: str) -> float:
     if not 0.0 <= value < float('inf'):
         raise argparse.ArgumentTypeError(f'expected seconds >= 0, got {text!r}')
     return value
+
+
+def _seed(text: str) -> int:
+    """A seed >= 0 for argparse."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f'expected an integer >= 0, got {text!r}')
+    return value
+
+
+def node_overrides(items, nodes) -> dict:
+    """``['nmpc.trigger=timer', ...]`` -> ``{'nmpc': {'trigger': 'timer'}}`` (values as YAML)."""
+    import yaml
+    names = {n.name for n in nodes}
+    out = {}
+    for item in items:
+        key, sep, text = item.partition('=')
+        node, dot, param = key.partition('.')
+        if not sep or not dot or not node or not param:
+            raise ParamError(f'-p {item!r}: expected NODE.PARAM=VALUE')
+        if node not in names:
+            raise ParamError(f'-p {item!r}: no node {node!r} in this graph; have {sorted(names)}')
+        try:
+            value = yaml.safe_load(text) if text else ''
+        except yaml.YAMLError:
+            raise ParamError(f'-p {item!r}: VALUE is not YAML') from None
+        if value is None or isinstance(value, dict):
+            raise ParamError(f'-p {item!r}: VALUE must be a number, bool, string or list')
+        out.setdefault(node, {})[param] = value
+    return out
 
 
 def parse_args(argv=None):
@@ -51,6 +85,13 @@ def parse_args(argv=None):
     p.add_argument('--vehicle', default=None,
                    help='vehicle passed to every node (default: the scenario\'s, else '
                         'config/defaults.yaml\'s)')
+    p.add_argument('--seed', type=_seed, default=None,
+                   help='simulator seed (friction field, noise, driver); default: the scenario\'s')
+    p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='scenario override for the simulator and the controller, as '
+                        'simulate.py --set (repeatable)')
+    p.add_argument('-p', '--param', action='append', default=[], metavar='NODE.PARAM=VALUE',
+                   help='a ROS parameter of one node of the graph, VALUE in YAML (repeatable)')
     p.add_argument('--clock', choices=CLOCK_MODES, default=None,
                    help='lockstep: nodes use /clock, published by the clock owner (the sim); '
                         'default: stack.yaml defaults.clock, else realtime')
@@ -104,10 +145,22 @@ def main(argv=None) -> int:
             print('[launch] no --bag given: not starting the recorder', file=sys.stderr)
             nodes = [n for n in nodes if n.module != RECORDER_MODULE]
         params_dir = args.bag or Path(tempfile.mkdtemp(prefix='drift_stack_'))
+        for item in args.set:
+            split_override(item)                      # KEY=VALUE, else one line
+        per_node = node_overrides(args.param, nodes)
+        scenario = stack.defaults.get('scenario', '') if args.scenario is None else args.scenario
+        run_info = None
+        if args.bag is not None:
+            from drift_tools.run_info import collect
+            run_info = params_dir / 'run_info.json'
+            run_info.write_text(json.dumps(collect(
+                cfg_dir, scenario=scenario, vehicle=args.vehicle or '', seed=args.seed,
+                overrides=args.set, graph=args.graph, clock=clock,
+                argv=[sys.executable, *sys.argv] if argv is None else ['run_stack.py', *argv])))
         opts = RunOptions(params_file=write_params_file(stack, params_dir / 'stack_params.yaml'),
                           config_dir=cfg_dir,
-                          scenario=stack.defaults.get('scenario', '') if args.scenario is None
-                          else args.scenario,
+                          scenario=scenario, seed=args.seed, overrides=tuple(args.set),
+                          run_info_file=run_info, node_overrides=per_node,
                           clock=clock,
                           bag_dir=args.bag, domain_id=args.domain_id,
                           sim_duration=args.sim_duration,
@@ -116,10 +169,13 @@ def main(argv=None) -> int:
         if args.sim_duration and not any(n.module == SIM_MODULE for n in nodes):
             raise ParamError(f'--sim-duration: graph {args.graph!r} has no simulator to end it')
         if opts.scenario:   # the controller's configuration and map, checked before any node
-            setup = load_setup(cfg_dir, opts.scenario, opts.vehicle or None)
+            setup = load_setup(cfg_dir, opts.scenario, opts.vehicle or None, opts.overrides)
             if any(n.module == SIM_MODULE for n in nodes):   # and the simulator's car
                 from drift_sim.scenario import load_scenario
-                load_scenario(opts.scenario, config=cfg_dir, spec=setup.scenario)
+                load_scenario(opts.scenario, list(opts.overrides), config=cfg_dir,
+                              spec=setup.scenario)
+        elif args.set:
+            raise ParamError('--set: needs a scenario (--scenario or stack.yaml defaults)')
     except ParamError as err:
         print(f'run_stack: {err}', file=sys.stderr)
         return 2
@@ -138,7 +194,8 @@ def main(argv=None) -> int:
         args.log_dir.mkdir(parents=True, exist_ok=True)
     # The recorder first, so it is subscribed before the others publish; and stopped last.
     for spec in sorted(nodes, key=lambda n: n.module != RECORDER_MODULE):
-        launcher.start(spec.name, node_command(spec, opts, stack.clock_owner), env,
+        launcher.start(spec.name, node_command(spec, opts, stack.clock_owner, stack.node_params),
+                       env,
                        stop_last=spec.module == RECORDER_MODULE,
                        log_path=args.log_dir / f'{spec.name}.log' if args.log_dir else None,
                        critical=spec.critical)

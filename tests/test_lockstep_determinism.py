@@ -64,3 +64,14 @@ def test_same_seed_same_bag_contents(tmp_path):
         np.testing.assert_array_equal(a.command[key][ia:ia + m], b.command[key][ib:ib + m],
                                       err_msg=key)
     assert np.abs(np.degrees(a.truth['beta'][:n])).max() > 5.0, 'the car did something'
+
+    # the bag's log times are sim time: its span is the sim span, the rates are the nodes' rates
+    from drift_tools.run_info import read_run_info
+    from drift_tools.summary import summarize_bag
+    summary = summarize_bag(tmp_path / 'run0')
+    assert abs(summary.duration_s - SIM_S) <= 0.021, summary.duration_s
+    assert summary.topics['/sim/state'].rate_hz == pytest.approx(100.0, rel=0.01)
+    assert summary.topics['/drift/command'].rate_hz == pytest.approx(50.0, rel=0.02)
+    info = read_run_info(tmp_path / 'run0')
+    assert info['scenario'] == 'steady_dry' and info['clock'] == 'lockstep'
+    assert len(info['commit']) == 40 and 'nmpc.yaml' in info['config']

@@ -244,3 +244,42 @@ def test_core_modules_do_not_import_rclpy():
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ''] if isinstance(node, ast.ImportFrom) else []
             assert not any(n.split('.')[0] == 'rclpy' for n in names), f'{path.name} imports rclpy'
+
+
+def test_seed_overrides_and_node_parameters_reach_their_nodes(tmp_path):
+    cfg = load_stack(REPO / 'config' / 'stack.yaml')
+    opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path, scenario='s',
+                      bag_dir=tmp_path / 'bag', seed=4, overrides=('surface.mu=0.9',),
+                      run_info_file=tmp_path / 'bag' / 'run_info.json',
+                      node_overrides={'nmpc': {'trigger': 'timer', 'max_input_age': 0.1}})
+    sim, nmpc, rec, can_car = (
+        _params(node_command(NodeSpec(name, module), opts, 'sim', cfg.node_params))
+        for name, module in (('sim', 'drift_sim.nodes.sim_node'),
+                             ('nmpc', 'drift_control.nodes.nmpc_node'),
+                             ('recorder', RECORDER_MODULE),
+                             ('can_car', 'drift_sim.nodes.sim_node')))
+    assert sim['seed'] == '4' and 'seed' not in nmpc
+    assert yaml.safe_load(sim['set']) == ['surface.mu=0.9'] == yaml.safe_load(nmpc['set'])
+    # a node's own stack.yaml overrides stay, the command line's come after them
+    assert yaml.safe_load(can_car['set']) == ['plant.steering.driver_share=0.0', 'surface.mu=0.9']
+    assert nmpc['trigger'] == "'timer'" and nmpc['max_input_age'] == '0.1'
+    assert 'trigger' not in sim and yaml.safe_load(rec['run_info_file']).endswith('run_info.json')
+    assert 'set' not in rec
+
+
+@pytest.mark.parametrize('argv, says', [
+    (['-p', 'foo=1'], "-p 'foo=1': expected NODE.PARAM=VALUE"),
+    (['-p', 'planner.x=1'], "no node 'planner' in this graph"),
+    (['-p', 'nmpc.x={a: 1}'], 'VALUE must be a number, bool, string or list'),
+    (['--set', 'surface.mu'], "override 'surface.mu': expected key=value"),
+    (['--set', 'bogus.key=1'], "unknown key(s) ['bogus']"),
+    (['--seed', '-2'], 'expected an integer >= 0'),
+])
+def test_run_stack_settings_errors_are_one_line(capsys, argv, says):
+    from conftest import load_script
+    try:
+        rc = load_script('run_stack').main([*argv, '--duration', '1'])
+    except SystemExit as ended:      # argparse's own refusals
+        rc = ended.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and says in err[-1], err

@@ -1,4 +1,5 @@
 """scripts/run_stack.py on graphs of test nodes: duration, a crashing node, SIGINT, the bag."""
+import re
 import signal
 import subprocess
 import time
@@ -40,7 +41,10 @@ def test_a_crashing_node_fails_the_run(node_env):
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 3, out
     assert time.monotonic() - t0 < 20.0
-    assert 'crasher exited with code 3' in out and '[talker]  published' in out, out
+    assert 'crasher exited with code 3' in out, out
+    # the talker was stopped, cleanly, whether or not it had got to publishing (a loaded
+    # machine may still be starting it when the crasher leaves)
+    assert re.search(r'stopped \(node-crash\); exit codes: talker=(0|-15|143), crasher=3', out), out
 
 
 def test_sigint_is_forwarded_and_the_bag_closed(node_env, tmp_path):

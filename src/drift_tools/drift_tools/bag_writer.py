@@ -125,6 +125,10 @@ class BagWriter:
         self._t_min = log_time_ns if self._t_min is None else min(self._t_min, log_time_ns)
         self._t_max = log_time_ns if self._t_max is None else max(self._t_max, log_time_ns)
 
+    def add_metadata(self, name: str, values: dict) -> None:
+        """An MCAP metadata record (``name``, string -> string), e.g. the run's settings."""
+        self._writer.add_metadata(name, {str(k): str(v) for k, v in values.items()})
+
     def flush(self) -> None:
         """Close the open chunk, push it to the file and refresh ``metadata.yaml``."""
         if self._closed:

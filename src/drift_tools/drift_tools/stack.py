@@ -20,6 +20,9 @@ CLOCK_MODES = ('realtime', 'lockstep')
 DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
 RECORDER_MODULE = 'drift_tools.nodes.recorder_node'
 SIM_MODULE = 'drift_sim.nodes.sim_node'
+# nodes whose ``set`` parameter takes scenario overrides (the bridge's takes bridge.yaml keys)
+SCENARIO_MODULES = (SIM_MODULE, 'drift_control.nodes.reference_node',
+                    'drift_control.nodes.nmpc_node')
 
 
 @dataclass(frozen=True)
@@ -132,6 +135,10 @@ class RunOptions:
     python: str = sys.executable
     sim_duration: float = 0.0              # simulated seconds the simulator runs; 0: scenario's
     vehicle: str = ''                      # '' = not passed; the scenario's, else the default
+    seed: int | None = None                # simulator seed; None = not passed (the scenario's)
+    overrides: tuple = ()                  # scenario overrides (--set) for sim and controller
+    run_info_file: Path | None = None      # the run's settings, for the recorder to keep
+    node_overrides: dict = field(default_factory=dict)   # node name -> {param: value} (-p)
     extra_params: dict = field(default_factory=dict)   # name -> value, for every node
 
     def __post_init__(self):
@@ -152,10 +159,13 @@ def _param_value(value) -> str:
         return 'true' if value else 'false'
     if isinstance(value, (int, float)):
         return repr(value)
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(_param_value(v) for v in value) + ']'
     return "'" + str(value).replace("'", "''") + "'"
 
 
-def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim') -> list[str]:
+def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
+                 node_params: dict | None = None) -> list[str]:
     """The argv that starts ``spec`` as its own process.
 
     In lockstep mode every node but the clock owner runs on ``/clock`` (use_sim_time); the owner
@@ -178,7 +188,16 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim') -> 
         params['wait_recorder'] = True   # lock-step: no step before the bag records the truth
     if spec.module == RECORDER_MODULE and opts.bag_dir is not None:
         params['bag_dir'] = str(opts.bag_dir)
+        if opts.run_info_file is not None:
+            params['run_info_file'] = str(opts.run_info_file)
+    if spec.module == SIM_MODULE and opts.seed is not None:
+        params['seed'] = int(opts.seed)
+    if opts.overrides and spec.module in SCENARIO_MODULES:   # after the node's own stack.yaml set
+        own = (node_params.get(spec.name, {}).get('ros__parameters', {}).get('set') or []) \
+            if node_params else []
+        params['set'] = [*own, *opts.overrides]
     params.update(opts.extra_params)
+    params.update(opts.node_overrides.get(spec.name, {}))
     argv = [opts.python, '-m', spec.module, '--ros-args', '-r', f'__node:={spec.name}',
             '--params-file', str(opts.params_file)]
     for name, value in params.items():

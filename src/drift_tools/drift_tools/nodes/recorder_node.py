@@ -1,5 +1,6 @@
 """Records every stack topic, as serialized CDR, into a rosbag2 MCAP directory."""
 import importlib
+import json
 import sys
 import time
 
@@ -13,6 +14,7 @@ from drift_control.params import ParamError, config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
 from drift_tools.disk import MIB, DiskLevel, DiskLimits, DiskWatch
 from drift_tools.recording import STACK_NAMESPACES, STACK_TOPICS, TopicSelector
+from drift_tools.run_info import RECORD_NAME
 
 
 def message_class(msgtype: str):
@@ -34,6 +36,9 @@ class RecorderNode(Node):
 
     The stack's own topics are subscribed at once with the types and QoS the stack uses; polling
     the graph adds new topics and re-subscribes where publishers offer a weaker QoS (as rosbag2).
+    Log times come from the node's clock: sim time under ``use_sim_time`` (a lock-step run), as
+    ``ros2 bag record --use-sim-time``. ``run_info_file`` (JSON, from run_stack) becomes the bag's
+    ``drift_run`` metadata record.
     Its health is on ``/diagnostics`` once per ``health_period``: disk space (a warning before
     it runs out, a clean stop just before) and write failures. A recording that stopped early
     keeps the node alive, reporting, and makes it exit 1 at the end.
@@ -50,6 +55,7 @@ class RecorderNode(Node):
         chunk_size = self.declare_parameter('chunk_size', DEFAULT_CHUNK_SIZE).value
         flush_period = self.declare_parameter('flush_period', 1.0).value
         health_period = self.declare_parameter('health_period', 1.0).value
+        run_info_file = self.declare_parameter('run_info_file', '').value
         limits = DiskLimits(
             warn_free=self.declare_parameter('disk_warn_free_mb', 2048.0).value * MIB,
             warn_time_left=self.declare_parameter('disk_warn_minutes', 10.0).value * 60.0,
@@ -61,6 +67,8 @@ class RecorderNode(Node):
             topics=tuple(resolve(t) for t in (*STACK_TOPICS, *extra) if t),
             namespaces=tuple(resolve(ns) for ns in namespaces if ns))
         self._writer = BagWriter(bag_dir, chunk_size=chunk_size)
+        if run_info_file:
+            self._writer.add_metadata(RECORD_NAME, _load_run_info(run_info_file))
         self._disk = DiskWatch(self._writer.bag_dir, limits)
         self.failure = ''          # why the recording stopped early; '' while it records
         self._dropped = 0          # messages that came after that
@@ -94,7 +102,7 @@ class RecorderNode(Node):
             if topic not in self._writer.topics:       # the bag lists only topics that had data
                 self._writer.add_topic(topic, msgtype)
                 self.get_logger().info(f'recording {topic} [{msgtype}]')
-            self._writer.write(topic, data, time.time_ns())
+            self._writer.write(topic, data, self.get_clock().now().nanoseconds)
         except OSError as err:
             self._stop_recording(f'write failed: {err.strerror or err}')
 
@@ -174,6 +182,17 @@ class RecorderNode(Node):
             self.exit_code = 1
             self.get_logger().error(f'recording incomplete: {self.failure}; '
                                     f'{self._dropped} messages not recorded')
+
+
+def _load_run_info(path) -> dict:
+    try:
+        with open(path, encoding='utf-8') as fh:
+            info = json.load(fh)
+    except (OSError, ValueError) as err:
+        raise ParamError(f'recorder: run_info_file {path}: {err}') from None
+    if not isinstance(info, dict):
+        raise ParamError(f'recorder: run_info_file {path}: expected a JSON object')
+    return info
 
 
 def main(args=None) -> int:
