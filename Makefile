@@ -5,6 +5,7 @@ GRAPH    ?= sim
 DURATION ?= 0        # wall-clock seconds; 0: until the scenario ends (the simulator ends the run)
 SCENARIO ?=
 VEHICLE  ?=
+SEED     ?=
 RUN      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
 
 .PHONY: setup run test
@@ -15,7 +16,7 @@ setup:
 run: setup
 	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) \
 		--bag $(RUN)/bag --log-dir $(RUN)/logs $(if $(SCENARIO),--scenario $(SCENARIO)) \
-		$(if $(VEHICLE),--vehicle $(VEHICLE)) $(ARGS)
+		$(if $(VEHICLE),--vehicle $(VEHICLE)) $(if $(SEED),--seed $(SEED)) $(ARGS)
 
 test:
 	@.ci/run $(ARGS)
