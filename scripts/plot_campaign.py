@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Figures of a campaign's store: pass rates, error histograms, and where in the plant ranges it fails.
+"""Figures of a campaign store: pass rates, error histograms, and which plant ranges fail.
 
     .venv/bin/python scripts/plot_campaign.py runs/campaign.jsonl --out runs/campaign_figures
 
@@ -46,7 +46,8 @@ def pass_rates(summary: dict, path: Path) -> None:
         lo = np.array([mine[sc]['ci95'][0] for sc in scenarios if sc in mine])
         hi = np.array([mine[sc]['ci95'][1] for sc in scenarios if sc in mine])
         bars = ax.bar(x + (i - (len(vehicles) - 1) / 2) * width, 100 * rate, width,
-                      yerr=100 * np.vstack([rate - lo, hi - rate]), capsize=3, label=vehicle)
+                      yerr=100 * np.vstack([rate - lo, hi - rate]), capsize=3, label=vehicle,
+                      color=f'C{i}')
         for bar, sc in zip(bars, [sc for sc in scenarios if sc in mine]):
             ax.annotate(f"{mine[sc]['held']}/{mine[sc]['runs']}",
                         (bar.get_x() + bar.get_width() / 2, 1.0), ha='center', fontsize=7,
@@ -56,8 +57,8 @@ def pass_rates(summary: dict, path: Path) -> None:
               for sc in scenarios]
     ax.set_xticks(range(len(scenarios)), labels, rotation=20, ha='right', fontsize=8)
     ax.set_ylabel('held [%] (95 % Wilson interval)')
-    ax.set_ylim(0, 105)
-    ax.legend(fontsize=8, loc='lower left')
+    ax.set_ylim(0, 118)    # room above 100 % for the legend
+    ax.legend(fontsize=8, loc='upper center', ncol=len(vehicles))
     ax.set_title(f"Pass rate, {summary['runs']} runs")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -82,8 +83,9 @@ def error_histograms(rows: list[dict], path: Path) -> None:
             pooled = [x for xs in values.values() for x in xs]
             if pooled:
                 edges = np.histogram_bin_edges(pooled, bins=min(20, max(5, len(pooled) // 5)))
-                for v, xs in values.items():
-                    ax.hist(xs, bins=edges, alpha=0.6, label=v)
+                for i, (v, xs) in enumerate(values.items()):   # one colour per car throughout
+                    if xs:
+                        ax.hist(xs, bins=edges, alpha=0.6, label=v, color=f'C{i}')
             else:
                 ax.text(0.5, 0.5, 'no held run\nwith this metric', ha='center', va='center',
                         transform=ax.transAxes, fontsize=8)
@@ -93,9 +95,11 @@ def error_histograms(rows: list[dict], path: Path) -> None:
                 ax.set_title(sc, fontsize=9)
     axes[0, 0].set_ylabel('held runs')
     axes[1, 0].set_ylabel('held runs')
-    if axes[0, -1].get_legend_handles_labels()[0]:
-        axes[0, -1].legend(fontsize=7)
-    fig.tight_layout()
+    handles = {label: h for ax in axes.flat for h, label in zip(*ax.get_legend_handles_labels())}
+    if handles:
+        fig.legend(list(handles.values()), list(handles), fontsize=8, loc='upper center',
+                   ncol=len(handles))
+    fig.tight_layout(rect=(0, 0, 1, 0.93))   # the legend above the titles
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
@@ -123,6 +127,7 @@ def failure_map(rows: list[dict], path: Path, config=None) -> bool:
                 count[i, b] = sel.sum()
                 if count[i, b]:
                     share[i, b] = failed[sel].mean()
+        ax.set_facecolor('0.85')   # grey: no run drew a value in that fifth
         image = ax.imshow(100 * share, cmap='Reds', vmin=0, vmax=100, aspect='auto')
         for (i, b), n in np.ndenumerate(count):
             if n:
@@ -132,7 +137,7 @@ def failure_map(rows: list[dict], path: Path, config=None) -> bool:
                       [f'{r.name} [{_fmt(r.low, r.kind)}, {_fmt(r.high, r.kind)}]'
                        for r in ranges], fontsize=7)
         ax.set_xticks(range(BINS), [f'{k + 1}/{BINS}' for k in range(BINS)], fontsize=7)
-        ax.set_xlabel('fifth of the range (low to high); cell: failure share, runs')
+        ax.set_xlabel('fifth of the range (low to high); cell: failure share, runs; grey: none')
         ax.set_title(f'{vehicle}: {int(failed.sum())} of {len(mine)} runs not as expected',
                      fontsize=9)
         fig.colorbar(image, ax=ax, label='not as expected [%]', shrink=0.8)

@@ -225,3 +225,22 @@ def test_an_interrupted_campaign_writes_no_summary_and_the_same_command_finishes
     assert load_script('campaign').main(argv) == 0
     assert len(store.read_text().splitlines()) == 3
     assert '| drift_hold_dry | gr86 | 3 |' in summary.read_text()
+
+
+def test_figures_of_a_store_with_drawn_plants(tmp_path):
+    from drift_sim.population import draw, load_population
+    population = load_population('gr86')
+    store = RunStore(tmp_path / 'runs.jsonl')
+    for index in range(12):
+        spun = index % 3 == 0
+        metrics = {'spun': spun, 'spin_time_s': 5.0 if spun else None, 'event_t_s': 5.0,
+                   'event_s_m': 50.0, 'beta_rms_error_deg': 0.4 + 0.01 * index,
+                   'max_abs_e_y_m': 0.5 + 0.02 * index}
+        store.add(_row(f'k{index}', metrics, draw=index)
+                  | {'values': draw(population, index).values})
+    plot = load_script('plot_campaign')
+    out = tmp_path / 'figures'
+    assert plot.main([str(tmp_path / 'runs.jsonl'), '--out', str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ['errors.png', 'failure_map.png',
+                                                     'pass_rate.png']
+    assert plot.main([str(tmp_path / 'none.jsonl'), '--out', str(out)]) == 2
