@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import signal
 import sys
 import time
@@ -34,23 +35,6 @@ from drift_sim.store import RunStore
 from drift_sim.sweep import ERROR, campaign_summary, format_campaign, parse_seeds
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'expected an integer >= 0, got {text!r}')
-    return value
-
-
-def _jobs(text: str) -> int:
-    value = _count(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f'expected an integer >= 1, got {text!r}')
-    return value
-
-
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--scenario', action='append',
@@ -58,10 +42,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--vehicle', action='append',
                    help='config/vehicle/<name>.yaml (repeat; default: every vehicle)')
     p.add_argument('--seeds', default='0', help='run seeds, e.g. 0-9 or 0,3 (default 0)')
-    p.add_argument('--plants', type=_count, default=0,
+    p.add_argument('--plants', type=int, default=0,
                    help='plant draws 0..N-1 per vehicle from config/sim/populations/ (default '
                    '0: the nominal plant)')
-    p.add_argument('--plant-seed', type=_count, default=0,
+    p.add_argument('--plant-seed', type=int, default=0,
                    help='seed of the plant draws (default 0)')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='override a scenario key in every run (duration=5, surface.mu=0.95)')
@@ -70,8 +54,8 @@ def parser() -> argparse.ArgumentParser:
                    help='JSON lines file of finished runs; read first, appended to')
     p.add_argument('--summary', help='write the summary (Markdown) here when every run is done')
     p.add_argument('--summary-json', help='the same summary as JSON')
-    p.add_argument('--worst', type=_count, default=10, help='worst runs listed (default 10)')
-    p.add_argument('--jobs', type=_jobs, default=2,
+    p.add_argument('--worst', type=int, default=10, help='worst runs listed (default 10)')
+    p.add_argument('--jobs', type=int, default=2,
                    help='local worker processes (default 2; 1: in this process, no Ray)')
     p.add_argument('--address', help='a Ray cluster: host:port of its head, ray://host:port '
                    'or auto')
@@ -81,6 +65,10 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    for name, least in (('plants', 0), ('plant_seed', 0), ('worst', 0), ('jobs', 1)):
+        if getattr(args, name) < least:
+            return _fail(f"--{name.replace('_', '-')}: expected an integer >= {least}, "
+                         f'got {getattr(args, name)}')
     config = default_config(args.config_dir)
     try:
         seeds = parse_seeds(args.seeds)
@@ -147,8 +135,7 @@ def _fail(err) -> int:
 
 
 def _command(argv) -> str:
-    words = sys.argv[1:] if argv is None else argv
-    return ' '.join(['scripts/campaign.py', *words])
+    return shlex.join(['scripts/campaign.py', *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == '__main__':

@@ -136,6 +136,7 @@ def broken_population(tmp_path):
     (['--scenario', 'no_such'], "scenario 'no_such'"),
     (['--vehicle', 'no_such'], "vehicle 'no_such'"),
     (['--seeds', '3-1'], 'seeds'),
+    (['--jobs', '0'], '--jobs: expected an integer >= 1'),
     (['--set', 'plant.body.mass=3'], "unknown key(s) ['mass']"),
     (['--address', f'127.0.0.1:{_free_port()}'], 'cannot reach it'),
     (['--address', 'nowhere'], 'expected host:port'),

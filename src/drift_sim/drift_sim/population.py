@@ -85,20 +85,45 @@ def load_population(vehicle: str, scenario: str | None = None, overrides=(),
     file = Path(file) if file else population_file(vehicle, config)
     if not file.is_file():
         raise ParamError(f'vehicle {vehicle!r}: no plant population {file}')
-    raw = load_yaml(file)
     where = file.name
-    unknown = sorted(set(raw) - {'parameters', 'not_modelled'} - {k for k in raw
-                                                                  if str(k).startswith('_')})
+    params, not_modelled = _read(file)
+    plant_raw, nominal = _nominal(vehicle, scenario, overrides, config)
+    ranges = tuple(_range(name, raw, nominal, f'{where}: parameters.{name}')
+                   for name, raw in params.items())
+    drawn_by: dict[str, str] = {}
+    for r in ranges:
+        for key in r.keys:
+            if key in drawn_by:
+                raise ParamError(f'{where}: parameters.{r.name}: {key} is drawn by '
+                                 f'{drawn_by[key]} already')
+            drawn_by[key] = r.name
+    population = Population(vehicle, file, ranges, {k: nominal[k] for k in drawn_by},
+                            not_modelled)
+    _check_ends(population, plant_raw, where)
+    return population
+
+
+def _read(file: Path) -> tuple[dict, dict]:
+    """The file's ``parameters`` and ``not_modelled`` mappings, their shapes checked."""
+    raw = load_yaml(file)
+    unknown = sorted(k for k in raw if k not in ('parameters', 'not_modelled')
+                     and not str(k).startswith('_'))
     if unknown:
-        raise ParamError(f'{where}: unknown key(s) {unknown}; expected parameters, not_modelled')
+        raise ParamError(f'{file.name}: unknown key(s) {unknown}; expected parameters, '
+                         'not_modelled')
     params = raw.get('parameters')
     if not isinstance(params, dict) or not params:
-        raise ParamError(f'{where}: parameters: expected a mapping of parameter ranges')
+        raise ParamError(f'{file.name}: parameters: expected a mapping of parameter ranges')
     not_modelled = raw.get('not_modelled') or {}
     if not isinstance(not_modelled, dict) or not all(isinstance(v, str) and v.strip()
                                                      for v in not_modelled.values()):
-        raise ParamError(f'{where}: not_modelled: expected parameter: reason lines')
+        raise ParamError(f'{file.name}: not_modelled: expected parameter: reason lines')
+    return params, dict(not_modelled)
 
+
+def _nominal(vehicle: str, scenario: str | None, overrides, config: Path) -> tuple[dict, dict]:
+    """The raw plant mapping a run starts from, and every number in it by dotted key (with
+    ``surface.mu``, the scenario's surface friction)."""
     if scenario:
         spec = load_scenario_spec(scenario, overrides, config, vehicle=vehicle)
         plant_raw = merge(plant_yaml(config, vehicle), spec.plant)
@@ -106,21 +131,7 @@ def load_population(vehicle: str, scenario: str | None = None, overrides=(),
     else:
         plant_raw = plant_yaml(config, vehicle)
         mu = load_surface('dry', config / 'vehicle' / 'surfaces.yaml').mu
-    leaves = dict(_numeric_leaves(plant_raw, 'plant'))
-    leaves[SURFACE_MU] = mu
-    ranges = tuple(_range(name, spec_, leaves, f'{where}: parameters.{name}')
-                   for name, spec_ in params.items())
-    seen: dict[str, str] = {}
-    for r in ranges:
-        for key in r.keys:
-            if key in seen:
-                raise ParamError(f'{where}: parameters.{r.name}: {key} is drawn by '
-                                 f'{seen[key]} already')
-            seen[key] = r.name
-    population = Population(vehicle, file, ranges, {k: leaves[k] for k in seen},
-                            dict(not_modelled))
-    _check_ends(population, plant_raw, where)
-    return population
+    return plant_raw, dict(_numeric_leaves(plant_raw, 'plant'), **{SURFACE_MU: mu})
 
 
 def draw(population: Population, index: int, seed: int = 0) -> Draw:
