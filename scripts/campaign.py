@@ -84,13 +84,13 @@ def main(argv=None) -> int:
     if not jobs:
         return _fail(f'no runs: no scenario under {args.config_dir}/scenarios')
     todo = sum(1 for job in jobs if job.key not in store)
-    print(f'campaign: {len(jobs)} runs ({len(scenarios)} scenario(s) x {len(vehicles)} '
-          f'vehicle(s) x {max(args.plants, 1)} plant(s) x {len(seeds)} seed(s)); '
-          f'{len(jobs) - todo} already in {args.store}', file=sys.stderr)
+    header = (f'campaign: {len(jobs)} runs ({len(scenarios)} scenario(s) x {len(vehicles)} '
+              f'vehicle(s) x {max(args.plants, 1)} plant(s) x {len(seeds)} seed(s)); '
+              f'{len(jobs) - todo} already in {args.store}')
     previous = signal.getsignal(signal.SIGTERM)
     t0 = time.perf_counter()
     try:
-        rows = _run(jobs, todo, store, args)
+        rows = _run(jobs, todo, store, args, header)
     except ClusterError as err:
         return _fail(err)
     except KeyboardInterrupt:
@@ -115,10 +115,12 @@ def main(argv=None) -> int:
     return 1 if any(row['outcome'] == ERROR for row in rows) else 0
 
 
-def _run(jobs, todo, store, args) -> list[dict]:
+def _run(jobs, todo, store, args, header: str) -> list[dict]:
     if not todo:   # everything finished already: no workers to start
+        print(header, file=sys.stderr)
         return [store.get(job.key) for job in jobs]
     with make_executor(args.jobs, args.address) as pool:
+        print(header, file=sys.stderr)   # after the workers: a refused cluster is one line
         # `kill` stops like Ctrl-C: the finished runs stay, the workers are released (set
         # after Ray's start, whose own SIGTERM handler would end the process at once)
         signal.signal(signal.SIGTERM, _interrupt)

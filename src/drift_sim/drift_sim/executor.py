@@ -10,9 +10,11 @@ ended the call, so one broken run never loses the others.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import socket
+import sys
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -69,6 +71,9 @@ class RayExecutor(Executor):
     """
 
     def __init__(self, workers: int = 2, address: str | None = None):
+        if address:
+            check_address(address)
+            _token_auth_if_token_here()   # before Ray's import, which reads the mode
         try:
             import ray
         except ImportError:
@@ -78,14 +83,13 @@ class RayExecutor(Executor):
         options = dict(include_dashboard=False, logging_level=logging.ERROR,
                        log_to_driver=False)
         if address:
-            check_address(address)
-            _token_auth_if_token_here()
             options['address'] = address
         else:   # 'local': a fresh instance even when a cluster runs on this machine
             options.update(address='local', num_cpus=workers,
                            object_store_memory=OBJECT_STORE_BYTES)
         try:
-            ray.init(**options)
+            with _stderr_dropped(bool(address)):   # Ray's core retries noisily for ~20 s
+                ray.init(**options)
         except Exception as err:   # noqa: BLE001 - ConnectionError, AuthenticationError, ...
             hint = (' (a cluster with token authentication needs its token here: '
                     '~/.ray/auth_token or RAY_AUTH_TOKEN; see docs/campaigns.md)' if address
@@ -139,9 +143,27 @@ def check_address(address: str) -> None:
                            f'({err.strerror or type(err).__name__})') from None
 
 
+@contextlib.contextmanager
+def _stderr_dropped(drop: bool):
+    """File descriptor 2 to /dev/null inside (C++ logs too), when ``drop``."""
+    if not drop:
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, 'w') as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def _token_auth_if_token_here() -> None:
     """Send a token when one is here: ``ray start --head`` turns token authentication on
-    whenever it finds one, but Ray's client never does for an explicit address."""
+    whenever it finds one, but Ray's client never does for an explicit address. Ray reads the
+    mode when it is first imported: a process that imported it before keeps its mode."""
     if 'RAY_AUTH_MODE' in os.environ:
         return
     if (os.environ.get('RAY_AUTH_TOKEN') or os.environ.get('RAY_AUTH_TOKEN_PATH')
