@@ -78,7 +78,7 @@ fi
 
 # 5. The NMPC's compiled QP functions (gcc, cached in .codegen/ by a hash of the problem): built
 #    here so that no node compiles for ~20 s at start-up, while a lock-step or real-time run waits.
-h=$(hash_files config/nmpc.yaml config/defaults.yaml config/vehicle/*.yaml src/drift_control/drift_control/{ocp,ocp_solvers,vehicle,tyre,params,assembly}.py)
+h=$(hash_files config/nmpc.yaml config/defaults.yaml config/vehicle/*.yaml src/drift_control/drift_control/{ocp,ocp_solvers,compiled,vehicle,tyre,params,assembly}.py)
 if ! stamp_ok nmpc_codegen "$h" || [[ ! -d .codegen ]]; then
     log "compiling the NMPC solver of every vehicle in config/vehicle (.codegen/)"
     t0=$SECONDS

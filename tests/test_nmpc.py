@@ -431,16 +431,39 @@ def test_torque_only_keeps_the_measured_steering(vp, params, plant, eq30):
 # --- solver backends ---------------------------------------------------------------------------
 
 def test_gcc_missing_falls_back_to_interpreted(vp, params, eq30, monkeypatch):
-    import drift_control.ocp_solvers as solvers
-    monkeypatch.setattr(solvers.shutil, 'which', lambda name: None)
+    import drift_control.compiled as compiled
+    monkeypatch.setattr(compiled.shutil, 'which', lambda name: None)
     ctrl = Nmpc(vp, params)
     assert ctrl._solver.qp_data.class_name() == 'MXFunction'
+    assert ctrl._solver.iteration is None
     warm(ctrl, eq30)
 
 
 def test_configured_solver_is_compiled(nmpc):
     if nmpc.params.solver.codegen and shutil.which('gcc'):
-        assert nmpc._solver.qp_data.class_name() != 'MXFunction'
+        assert nmpc._solver.iteration is not None, 'one compiled call per RTI iteration'
+
+
+@pytest.mark.parametrize('qp', ['hpipm', 'qrqp'])
+def test_compiled_iteration_matches_interpreted(vp, params, eq30, qp):
+    """The one-call compiled iteration solves the same QP as the interpreted functions (its
+    gap Jacobian is summed in another order: equal to rounding)."""
+    if not shutil.which('gcc'):
+        pytest.skip('no gcc')
+    sp = dataclasses.replace(params.solver, qp_solver=qp)
+    ctrl = Nmpc(vp, dataclasses.replace(params, solver=sp))
+    solver, ocp = ctrl._solver, ctrl.ocp
+    x0 = np.r_[perturbed_start(eq30)[:6], eq30.T_R, eq30.T_R]
+    w0 = ocp.join(np.tile(x0, (ocp.N + 1, 1)), np.tile([0.0, eq30.T_R], (ocp.N, 1)))
+    p = ocp.pack_params(reference_rows(Reference(0.0, eq30), ocp.N), 1.0)
+    lb, ub = ocp.bounds_for(x0)
+    args = (w0 / solver.D, p, lb / solver.D, ub / solver.D)
+    compiled = solver._iterate(*args)
+    solver.iteration = None
+    interpreted = solver._iterate(*args)
+    assert compiled[3] == interpreted[3], 'same success status'
+    assert np.allclose(compiled[0], interpreted[0], rtol=0, atol=1e-9)
+    assert compiled[1] == interpreted[1] and compiled[2] == pytest.approx(interpreted[2], abs=1e-9)
 
 
 @pytest.mark.slow

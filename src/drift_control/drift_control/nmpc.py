@@ -19,7 +19,7 @@ from enum import IntEnum
 import numpy as np
 
 from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
-from drift_control.ocp_solvers import make_solver
+from drift_control.ocp_solvers import make_solver, period_function
 from drift_control.pacing import PeriodGate
 from drift_control.params import VehicleParams
 from drift_control.plausibility import InputChecker
@@ -97,6 +97,7 @@ class Nmpc:
         self.ocp = Ocp(vehicle_params, nmpc_params)
         self.bounds = self.ocp.bounds
         self._solver = make_solver(self.ocp, nmpc_params.solver)
+        self._period = period_function(self.ocp, nmpc_params.solver)
         self._hold = nmpc_params.torque_only_hold_stages if mode == Mode.TORQUE_ONLY else 0
         self.supervisor = Supervisor(supervisor) if supervisor is not None else None
         self.inputs = InputChecker(vehicle_params, nmpc_params.inputs)
@@ -241,7 +242,7 @@ class Nmpc:
         self._w, self._age, self._failures, self._engaged = out.w, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
         # where the next state should be: one control period of the model from this one
-        self._x1_pred = np.asarray(ocp.F_period(X_pred[0], U_pred[0], self.mu)).ravel() + d
+        self._x1_pred = self._period(X_pred[0], U_pred[0], self.mu) + d
         command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
@@ -360,10 +361,9 @@ class Nmpc:
         last = self._last
         target = ref.target.delta if ref is not None and ref.is_finite() else last.delta
         target = self._clip_delta(target)
-        step = float(np.clip(target - last.delta, -p.fallback_delta_rate * Ts,
-                             p.fallback_delta_rate * Ts))
+        step = _clip(target - last.delta, -p.fallback_delta_rate * Ts, p.fallback_delta_rate * Ts)
         T_step = p.fallback_torque_rate * Ts
-        torque = float(np.clip(last.drive_torque, -T_step, T_step))   # distance left to zero
+        torque = _clip(last.drive_torque, -T_step, T_step)   # distance left to zero
         torque = last.drive_torque - torque
         if self.mode == Mode.TORQUE_ONLY:
             return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
@@ -379,7 +379,7 @@ class Nmpc:
                                   float(U_pred[0, U.T_R]), self.mode))
 
     def _clip_delta(self, delta: float) -> float:
-        return float(np.clip(delta, -self.bounds.delta_max, self.bounds.delta_max))
+        return _clip(delta, -self.bounds.delta_max, self.bounds.delta_max)
 
     def _safe(self, c: Command) -> Command:
         """Clip to the bounds; a non-finite value is replaced by a safe one (hold, zero)."""
@@ -389,8 +389,8 @@ class Nmpc:
         rate = c.delta_rate if math.isfinite(c.delta_rate) else 0.0
         torque = c.drive_torque if math.isfinite(c.drive_torque) else 0.0
         return Command(c.stamp, self._clip_delta(delta),
-                       float(np.clip(rate, -b.delta_dot_max, b.delta_dot_max)),
-                       float(np.clip(torque, b.T_R_min, b.T_R_max)), c.mode)
+                       _clip(rate, -b.delta_dot_max, b.delta_dot_max),
+                       _clip(torque, b.T_R_min, b.T_R_max), c.mode)
 
     @property
     def consecutive_failures(self) -> int:
@@ -442,6 +442,11 @@ class LockstepTrigger:
 
     def _ready(self) -> bool:
         return self._pending is not None and self._ref_stamp >= self._pending[0] - self.EPS
+
+
+def _clip(value: float, low: float, high: float) -> float:
+    """``float(np.clip(value, low, high))`` for one number, without numpy's call overhead."""
+    return float(low if value < low else high if value > high else value)
 
 
 def _shift_rows(rows: np.ndarray, shift: float, hold: bool = False) -> np.ndarray:

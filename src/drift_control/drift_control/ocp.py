@@ -330,14 +330,12 @@ class Ocp:
             b = b._replace(T_R_min=min(max(b.T_R_min, T_R_min), b.T_R_max))
         lb, ub = np.full(self.nw, -np.inf), np.full(self.nw, np.inf)
         nz = NS + NU
-        for k in range(self.N + 1):
-            lb[k * nz + X.DELTA], ub[k * nz + X.DELTA] = -b.delta_max, b.delta_max
-        for k in range(self.N):
-            i = k * nz + NS
-            hold = k < hold_stages
-            lb[i + U.DELTA_DOT] = 0.0 if hold else -b.delta_dot_max
-            ub[i + U.DELTA_DOT] = 0.0 if hold else b.delta_dot_max
-            lb[i + U.T_R], ub[i + U.T_R] = b.T_R_min, b.T_R_max
+        # strided slices: every stage's entry (N + 1 states, N inputs fit in nw = N nz + NS)
+        lb[X.DELTA::nz], ub[X.DELTA::nz] = -b.delta_max, b.delta_max
+        rate = NS + U.DELTA_DOT
+        lb[rate::nz], ub[rate::nz] = -b.delta_dot_max, b.delta_dot_max
+        lb[rate:rate + hold_stages * nz:nz] = ub[rate:rate + hold_stages * nz:nz] = 0.0
+        lb[NS + U.T_R::nz], ub[NS + U.T_R::nz] = b.T_R_min, b.T_R_max
         lb[:NS] = ub[:NS] = x_init
         return lb, ub
 

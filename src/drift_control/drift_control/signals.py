@@ -7,6 +7,7 @@ drift has ``r > 0``, ``beta < 0`` and, once it is a full drift, counter-steer ``
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 from enum import IntEnum, IntFlag
@@ -181,13 +182,19 @@ class Command:
 def _numbers(obj) -> list[float]:
     """Every float field of a dataclass, tuples of floats flattened; nested dataclasses skipped."""
     out: list[float] = []
-    for f in fields(obj):
-        value = getattr(obj, f.name)
+    for name in _field_names(type(obj)):
+        value = getattr(obj, name)
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             out.append(float(value))
         elif isinstance(value, tuple) and all(isinstance(v, (int, float)) for v in value):
             out.extend(float(v) for v in value)
     return out
+
+
+@functools.lru_cache(maxsize=None)
+def _field_names(cls) -> tuple[str, ...]:
+    """A dataclass's field names, looked up once per class (checked on every cycle)."""
+    return tuple(f.name for f in fields(cls))
 
 
 __all__ = ['Command', 'Direction', 'Equilibrium', 'Mode', 'Reference', 'Validity',
