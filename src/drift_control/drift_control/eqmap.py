@@ -147,20 +147,34 @@ class EquilibriumMap:
             The equilibrium, and True when the query was clamped to the grid or fell on a grid
             cell without a converged equilibrium (a hole, filled from its neighbours).
         """
-        if direction not in (Direction.LEFT, Direction.RIGHT):
-            raise ValueError(f'lookup needs Direction.LEFT or RIGHT, got {direction!r}')
-        b, clamped_b = _clamp(beta_abs, self.beta_abs[0], self.beta_abs[-1])
-        R, clamped_r = _clamp(radius, self.radius[0], self.radius[-1])
-        clamped = clamped_b or clamped_r
-        if clamped:
-            self._warn_clamped(beta_abs, radius, b, R)
-        i = int(np.abs(self.beta_abs - b).argmin())
-        j = int(np.abs(self.radius - R).argmin())
-        hole = not self.converged[i, j]
-        V, omega_F, omega_R, delta, T_R = (float(s.ev(b, R)) for s in self._splines)
-        eq = Equilibrium(V=V, beta=-b, r=V / R, omega_F=omega_F, omega_R=omega_R, delta=delta,
-                         T_R=T_R)
-        return (eq if direction == Direction.LEFT else eq.mirrored()), clamped or hole
+        return self.lookup_many([(beta_abs, radius, direction)])[0]
+
+    def lookup_many(self, queries) -> list[tuple[Equilibrium, bool]]:
+        """``[lookup(beta_abs, radius, direction) for ... in queries]``, the splines evaluated
+        once for all queries (point by point as one lookup would: the same values)."""
+        points = []
+        for beta_abs, radius, direction in queries:
+            if direction not in (Direction.LEFT, Direction.RIGHT):
+                raise ValueError(f'lookup needs Direction.LEFT or RIGHT, got {direction!r}')
+            b, clamped_b = _clamp(beta_abs, self.beta_abs[0], self.beta_abs[-1])
+            R, clamped_r = _clamp(radius, self.radius[0], self.radius[-1])
+            if clamped_b or clamped_r:
+                self._warn_clamped(beta_abs, radius, b, R)
+            points.append((b, R, clamped_b or clamped_r))
+        b = np.array([q[0] for q in points])
+        R = np.array([q[1] for q in points])
+        i = np.abs(self.beta_abs[None, :] - b[:, None]).argmin(axis=1)
+        j = np.abs(self.radius[None, :] - R[:, None]).argmin(axis=1)
+        holes = ~self.converged[i, j]
+        values = [s.ev(b, R) for s in self._splines]
+        out = []
+        for n, ((bn, Rn, clamped), (_, _, direction)) in enumerate(zip(points, queries)):
+            V, omega_F, omega_R, delta, T_R = (float(v[n]) for v in values)
+            eq = Equilibrium(V=V, beta=-bn, r=V / Rn, omega_F=omega_F, omega_R=omega_R,
+                             delta=delta, T_R=T_R)
+            out.append((eq if direction == Direction.LEFT else eq.mirrored(),
+                        clamped or bool(holes[n])))
+        return out
 
     def _warn_clamped(self, beta_abs, radius, b, R) -> None:
         now = time.monotonic()

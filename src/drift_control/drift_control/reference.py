@@ -23,6 +23,8 @@ import time
 from dataclasses import dataclass, fields, replace
 from typing import Callable
 
+import numpy as np
+
 from drift_control.frenet import Frenet
 from drift_control.params import from_dict, load_yaml, require
 from drift_control.path import Path
@@ -122,10 +124,16 @@ class ReferenceSelector:
         The path to follow, with its desired sideslip profile.
     params : ReferenceParams
         Gains and limits.
+    lookup_many : callable, optional
+        ``lookup_many([(beta_abs, radius, direction), ...]) -> [(Equilibrium, clamped), ...]``,
+        the same lookups in one call (``EquilibriumMap.lookup_many``: the horizon's 25 lookups
+        evaluate the map's splines once).
     """
 
-    def __init__(self, lookup: Lookup, path: Path, params: ReferenceParams):
+    def __init__(self, lookup: Lookup, path: Path, params: ReferenceParams,
+                 lookup_many: Callable | None = None):
         self._lookup, self.path, self.p = lookup, path, params
+        self._lookup_many = lookup_many
         self.frenet = Frenet(path, params.window_back, params.window_forward, params.lost_distance)
         self._warn = _Throttled(params.warn_interval)
         self._last: Reference | None = None
@@ -156,7 +164,7 @@ class ReferenceSelector:
         equilibrium, the direction (NONE while blending) and whether the lookup clamped.
         """
         w = self.side_weight(K_cmd) if w is None else w
-        radius = 1.0 / max(min(abs(K_cmd), 1.0 / self.p.radius_min), 1.0 / self.p.radius_max)
+        radius = self._radius(K_cmd)
         if w in (0.0, 1.0):
             direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
             eq, clamped = self._lookup(beta_abs, radius, direction)
@@ -164,6 +172,10 @@ class ReferenceSelector:
         left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
         return _blend(left, right, w), Direction.NONE, c_l or c_r
+
+    def _radius(self, K_cmd: float) -> float:
+        """The lookup radius of a curvature, limited to the map range [m]."""
+        return 1.0 / max(min(abs(K_cmd), 1.0 / self.p.radius_min), 1.0 / self.p.radius_max)
 
     def select(self, state: VehicleState) -> Reference | None:
         """The reference for ``state``; the previous one (or None) when the state is unusable."""
@@ -236,21 +248,45 @@ class ReferenceSelector:
         p, h = self.p, self.p.horizon_dt
         if p.horizon_steps == 0:
             return (), (start[2],)
-        out, (K, beta, w) = [target], start
-        weights = [w]
+        (K, beta, w) = start
+        weights, queries = [w], []
         k_max = 1.0 / p.radius_min
-        for k in range(1, p.horizon_steps):
-            s_k = s + max(V, 0.0) * k * h
-            K_path = float(self.path.curvature_at(s_k))
+        # the path along the whole horizon in one call each; the limits run stage by stage
+        s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
+        K_paths, betas = self.path.curvature_at(s_k), self.path.beta_at(s_k)
+        for K_path, beta_path in zip(K_paths.tolist(), np.broadcast_to(betas, s_k.shape).tolist()):
             K_k = max(-k_max, min(k_max, K_path - correction))
             K = _limit(K, K_k, p.curvature_rate_max * h)
-            beta = _limit(beta, float(self.path.beta_at(s_k)), p.beta_rate_max * h)
+            beta = _limit(beta, beta_path, p.beta_rate_max * h)
             w = _limit(w, self.side_weight(K_path if p.side_from_path else K),
                        p.side_rate_max * h)
-            out.append(self.equilibrium(beta, K, w)[0])
+            queries.append((beta, K, w))
             weights.append(w)
-        return tuple(out), tuple(weights)
+        return (target, *(eq for eq, _, _ in self._equilibria(queries))), tuple(weights)
 
+    def _equilibria(self, queries):
+        """``[equilibrium(beta_abs, K_cmd, w) for ... in queries]``, the map looked up once."""
+        if self._lookup_many is None:
+            return [self.equilibrium(*q) for q in queries]
+        asks, plan = [], []   # map queries, and per stage: (direction, where its lookups are)
+        for beta_abs, K_cmd, w in queries:
+            radius = self._radius(K_cmd)
+            if w in (0.0, 1.0):
+                direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
+                plan.append((direction, len(asks), None, w))
+                asks.append((beta_abs, radius, direction))
+            else:
+                plan.append((Direction.NONE, len(asks), len(asks) + 1, w))
+                asks += [(beta_abs, radius, Direction.LEFT), (beta_abs, radius, Direction.RIGHT)]
+        found = self._lookup_many(asks)
+        out = []
+        for direction, i, j, w in plan:
+            if j is None:
+                out.append((found[i][0], direction, found[i][1]))
+            else:
+                (left, c_l), (right, c_r) = found[i], found[j]
+                out.append((_blend(left, right, w), direction, c_l or c_r))
+        return out
 
 def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium, ...]:
     """The stages with the yaw rate that keeps the velocity direction on the path while the
