@@ -9,7 +9,8 @@ loop working against the self-aligning moment of the front tyres; aerodynamic dr
 resistance, brakes; friction from the road field at each contact patch.
 
 ``PlantModel.step`` is ONE casadi Function that integrates ``substeps`` RK4 steps (``mapaccum``),
-so Python runs once per plant call (10 ms), not once per 1 ms step.
+so Python runs once per plant call (10 ms), not once per 1 ms step; ``PlantModel.compiled`` is
+the same Function compiled with gcc and called through ctypes.
 """
 from __future__ import annotations
 
@@ -17,10 +18,13 @@ import logging
 import os
 import tempfile
 from enum import IntEnum
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
+from drift_control.compiled import CompiledFunction, build_cached
+from drift_control.params import config_dir
 from drift_control.tyre import combined_forces
 from drift_control.vehicle import smooth_max
 from drift_sim.params import PlantParams
@@ -202,24 +206,21 @@ class PlantModel:
         k4 = self.f(x + h * k3, u, q)[0]
         x_next = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         rk4 = ca.Function('plant_rk4', [x, u, q], [x_next, self.f(x_next, u, q)[1]])
+        self.step = rk4.mapaccum('plant_step', p.substeps, [0], [0])
         if jit is None:
             jit = os.environ.get('DRIFT_SIM_JIT', '1') != '0'
-        compiled = _jit(rk4) if jit else None
-        self.jit = compiled is not None
-        rk4 = compiled or rk4
-        self.step = rk4.mapaccum('plant_step', p.substeps, [0], [0])
+        #: the same ``step`` compiled, called on its own buffers (``Plant`` uses it); None:
+        #: interpreted (no gcc, or ``DRIFT_SIM_JIT=0``)
+        self.compiled = _compile(self.step) if jit else None
+        self.jit = self.compiled is not None
 
 
-def _jit(fun: ca.Function) -> ca.Function | None:
-    """Compile ``fun`` to C with the system compiler; None (interpreted SX) when that fails."""
-    try:
-        os.makedirs(os.path.join(tempfile.gettempdir(), 'drift_sim_jit'), exist_ok=True)
-        return ca.Function(fun.name(), fun.sx_in(), fun.call(fun.sx_in()),
-                           {'jit': True, 'compiler': 'shell',
-                            'jit_options': {'flags': ['-O2'], 'verbose': False,
-                                            'directory': os.path.join(tempfile.gettempdir(),
-                                                                      'drift_sim_jit')},
-                            'jit_temp_suffix': True})
-    except Exception as err:    # no compiler, no headers: fall back to the SX virtual machine
-        _log.warning('plant: JIT compilation failed (%s); using the interpreted function', err)
-        return None
+def _compile(fun: ca.Function) -> CompiledFunction | None:
+    """``fun`` as C built by gcc, cached by the hash of its source beside the NMPC's (``.codegen``
+    of the checkout, else the temporary directory); None (interpreted) when that fails."""
+    for cache in (config_dir().parent / '.codegen', Path(tempfile.gettempdir()) / 'drift_codegen'):
+        so = build_cached(fun, fun.name(), cache)
+        if so is not None:
+            return CompiledFunction(so, fun)
+    _log.warning('plant: compilation failed; using the interpreted function')
+    return None

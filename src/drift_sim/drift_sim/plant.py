@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from drift_control.signals import Command, Mode, VehicleState
-from drift_sim.model import NS, NUP, PP, S, UP, Y, PlantModel, n_params
+from drift_sim.model import NS, NUP, NY, PP, S, UP, Y, PlantModel, n_params
 from drift_sim.params import SIGNALS, PlantParams
 from drift_sim.road import friction, friction_modes
 
@@ -200,8 +200,7 @@ class Plant:
         self._torque = np.concatenate([self._torque[n:], np.full(n, float(torque))])
         U = np.repeat(self._inputs_column(delta, rate, 0.0, brake, human), n, axis=1)
         U[UP.T_REQ] = self._torque[:n]
-        X, Ys = self.model.step(self.x, U, self.q)
-        X, Ys = np.asarray(X), np.asarray(Ys)
+        X, Ys = self._integrate(U)
         self.x = X[:, -1].copy()
         self.t = round(self.t + p.step, 9)
         rows = signals(X, Ys)
@@ -212,6 +211,19 @@ class Plant:
         if not np.all(np.isfinite(self.x)):
             raise FloatingPointError(f'plant: state is not finite at t={self.t:.3f} s')
         return self._measure()
+
+    def _integrate(self, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States (NS, n) and outputs (NY, n) after each substep from ``self.x`` under ``U``."""
+        fast = self.model.compiled
+        if fast is None:
+            X, Ys = self.model.step(self.x, U, self.q)
+            return np.asarray(X), np.asarray(Ys)
+        n = U.shape[1]
+        fast.inputs[0][:] = self.x
+        fast.inputs[1][:] = U.ravel(order='F')   # casadi's column-major nonzeros
+        fast.inputs[2][:] = np.tile(self.q, n)   # mapped: one column per substep
+        fast()
+        return fast.outputs[0].reshape(n, NS).T.copy(), fast.outputs[1].reshape(n, NY).T.copy()
 
     def _inputs_column(self, delta, rate, torque, brake, human) -> np.ndarray:
         st = self.p.steering
