@@ -353,7 +353,8 @@ def recover_bag(source, target) -> Recovery:
         writer.finish()
     times = [m.log_time for m in scan.messages]
     topics = [(c.topic, scan.schemas[c.schema_id].name if c.schema_id in scan.schemas else '',
-               counts[cid], '') for cid, c in sorted(scan.channels.items()) if counts[cid]]
+               counts[cid], '', c.metadata.get('offered_qos_profiles', ''))
+              for cid, c in sorted(scan.channels.items()) if counts[cid]]
     write_metadata(target, out.name, topics, min(times, default=None), max(times, default=None))
     kept = {scan.channels[cid].topic: n for cid, n in counts.items() if n}
     return Recovery(source, target, kept, tuple(scan.problems()))

@@ -37,6 +37,7 @@ class _Topic:
     msgtype: str
     channel_id: int
     type_hash: str
+    qos: str = ''          # offered_qos_profiles (rosbag2 YAML text)
     count: int = 0
 
 
@@ -85,7 +86,7 @@ class BagWriter:
         return {t.name: t.count for t in self._topics.values()}
 
     def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None,
-                  type_hash: str = '') -> None:
+                  type_hash: str = '', reliable: bool = True, latched: bool = False) -> None:
         """Register a topic; its schema is the full ROS 2 definition of ``msgtype``.
 
         Parameters
@@ -98,6 +99,8 @@ class BagWriter:
             Concatenated definition; looked up from the ``.msg`` files when not given.
         type_hash : str
             RIHS01 type hash, stored in the metadata when known.
+        reliable, latched : bool
+            The QoS it was recorded with, kept (as rosbag2 does) so a replay offers the same.
         """
         if topic in self._topics:
             if self._topics[topic].msgtype != normalize(msgtype):
@@ -108,10 +111,11 @@ class BagWriter:
             text = msgdef if msgdef is not None else message_definition(msgtype)
             self._schemas[msgtype] = self._writer.register_schema(
                 msgtype, SchemaEncoding.ROS2, text.encode())
+        qos = qos_yaml(reliable, latched)
         channel_id = self._writer.register_channel(
             topic, MessageEncoding.CDR, self._schemas[msgtype],
-            metadata={'offered_qos_profiles': ''})
-        self._topics[topic] = _Topic(topic, msgtype, channel_id, type_hash)
+            metadata={'offered_qos_profiles': qos})
+        self._topics[topic] = _Topic(topic, msgtype, channel_id, type_hash, qos)
 
     def write(self, topic: str, data: bytes, log_time_ns: int | None = None,
               publish_time_ns: int | None = None) -> None:
@@ -172,8 +176,44 @@ class BagWriter:
 
     def _write_metadata(self) -> None:
         write_metadata(self.bag_dir, self.mcap_path.name,
-                       [(t.name, t.msgtype, t.count, t.type_hash) for t in self._topics.values()],
+                       [(t.name, t.msgtype, t.count, t.type_hash, t.qos)
+                        for t in self._topics.values()],
                        self._t_min, self._t_max)
+
+
+_INFINITE = {'sec': 2147483647, 'nsec': 4294967295}
+
+
+def qos_yaml(reliable: bool, latched: bool) -> str:
+    """rosbag2's ``offered_qos_profiles`` text for one publisher (rmw enum values)."""
+    profile = {'history': 3, 'depth': 0,                   # system default / unknown
+               'reliability': 1 if reliable else 2,         # RELIABLE / BEST_EFFORT
+               'durability': 1 if latched else 2,           # TRANSIENT_LOCAL / VOLATILE
+               'deadline': _INFINITE, 'lifespan': _INFINITE, 'liveliness': 1,
+               'liveliness_lease_duration': _INFINITE,
+               'avoid_ros_namespace_conventions': False}
+    return yaml.safe_dump([profile], sort_keys=False)
+
+
+def parse_qos_yaml(text: str) -> tuple[bool, bool] | None:
+    """(reliable, latched) from ``offered_qos_profiles``: all publishers must offer it."""
+    try:
+        profiles = yaml.safe_load(text) if text else None
+    except yaml.YAMLError:
+        return None
+    if not isinstance(profiles, list) or not profiles or \
+            not all(isinstance(p, dict) for p in profiles):
+        return None
+    return (all(p.get('reliability') == 1 for p in profiles),
+            all(p.get('durability') == 1 for p in profiles))
+
+
+def _profiles(qos_text: str) -> list:
+    try:
+        profiles = yaml.safe_load(qos_text) if qos_text else []
+    except yaml.YAMLError:
+        return []
+    return profiles if isinstance(profiles, list) else []
 
 
 def write_metadata(bag_dir, file_name: str, topics, t_min_ns, t_max_ns) -> None:
@@ -181,7 +221,9 @@ def write_metadata(bag_dir, file_name: str, topics, t_min_ns, t_max_ns) -> None:
 
     Parameters
     ----------
-    topics : iterable of (name, msgtype, count, type_hash)
+    topics : iterable of (name, msgtype, count, type_hash[, qos])
+        ``qos``: the channel's ``offered_qos_profiles`` text; readers (rosbags) match a topic's
+        channel by it, so both must say the same.
     t_min_ns, t_max_ns : int or None
         First and last receive time [ns since the epoch]; None for an empty bag.
     """
@@ -195,10 +237,11 @@ def write_metadata(bag_dir, file_name: str, topics, t_min_ns, t_max_ns) -> None:
         'starting_time': {'nanoseconds_since_epoch': start},
         'message_count': count,
         'topics_with_message_count': [
-            {'topic_metadata': {'name': name, 'type': msgtype, 'serialization_format': 'cdr',
-                                'offered_qos_profiles': [], 'type_description_hash': type_hash},
-             'message_count': n}
-            for name, msgtype, n, type_hash in topics],
+            {'topic_metadata': {'name': t[0], 'type': t[1], 'serialization_format': 'cdr',
+                                'offered_qos_profiles': _profiles(t[4] if len(t) > 4 else ''),
+                                'type_description_hash': t[3]},
+             'message_count': t[2]}
+            for t in topics],
         'compression_format': '',
         'compression_mode': '',
         'relative_file_paths': [file_name],

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import struct
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +68,88 @@ def _msgtype(schema) -> str:
     if '/msg/' not in msgtype and msgtype.count('/') == 1:
         msgtype = msgtype.replace('/', '/msg/')
     return msgtype
+
+
+def topic_qos(bag_dir) -> dict[str, tuple[bool, bool]]:
+    """Topic -> (reliable, latched) as recorded; the stack's own list where the bag is silent."""
+    from drift_tools.bag_writer import parse_qos_yaml
+    from drift_tools.recording import STACK_TOPICS
+    bag_dir = Path(bag_dir)
+    channels = scan_bag(bag_dir).channels.values() if not is_finished(bag_dir) else None
+    if channels is None:
+        from mcap.reader import make_reader
+        from drift_tools.bag_salvage import bag_file
+        with open(bag_file(bag_dir), 'rb') as fh:
+            channels = list(make_reader(fh).get_summary().channels.values())
+    known = {('/' + t.lstrip('/')): latched for t, (_, latched) in STACK_TOPICS.items()}
+    out = {}
+    for ch in channels:
+        qos = parse_qos_yaml(ch.metadata.get('offered_qos_profiles', ''))
+        out[ch.topic] = qos if qos is not None else (True, known.get(ch.topic, False))
+    return out
+
+
+def iter_replay(bag_dir, topics=None, start: float = 0.0, end: float | None = None,
+                loops: int = 1) -> Iterator[RawMessage]:
+    """The messages of ``[start, end]`` (seconds after the first message), ``loops`` times.
+
+    Time never runs backwards for a subscriber: pass ``k`` is shifted by ``k`` times the window's
+    length plus its mean message spacing, in the log time and in the stamp of every message that
+    begins with one (a ``std_msgs/Header``, or ``/clock``'s time). ``loops=0`` repeats until
+    the caller stops.
+    """
+    messages = list(iter_raw(bag_dir, topics))
+    if not messages:
+        return
+    t0 = messages[0].t_ns
+    lo = t0 + int(round(start * 1e9))
+    hi = None if end is None else t0 + int(round(end * 1e9))
+    if lo > messages[-1].t_ns or (hi is not None and hi < lo):
+        raise ValueError(f'time window {start:g}..{end if end is not None else "end"} s is '
+                         f'outside the bag (0..{(messages[-1].t_ns - t0) * 1e-9:.3f} s)')
+    window = [m for m in messages if m.t_ns >= lo and (hi is None or m.t_ns <= hi)]
+    if not window:
+        raise ValueError(f'time window {start:g}..{end:g} s holds no message')
+    span = window[-1].t_ns - window[0].t_ns
+    period = span // max(len({m.t_ns for m in window}) - 1, 1)
+    k = 0
+    while loops <= 0 or k < loops:
+        shift = k * (span + max(period, 1))
+        for m in window:
+            yield m if shift == 0 else RawMessage(m.topic, m.msgtype, m.t_ns + shift,
+                                                  restamp(m.data, m.msgtype, shift))
+        k += 1
+
+
+_STAMPED_FIRST: dict[str, bool] = {}
+
+
+def restamp(data: bytes, msgtype: str, shift_ns: int) -> bytes:
+    """CDR ``data`` with its leading time (a Header's stamp, a Clock's clock) moved by
+    ``shift_ns``; other messages unchanged. The time is the first field: bytes 4-12."""
+    if not _stamped_first(msgtype) or len(data) < 12:
+        return data
+    little = data[1] == 1            # encapsulation: CDR_LE = 0x0001, CDR_BE = 0x0000
+    fmt = '<iI' if little else '>iI'
+    sec, nsec = struct.unpack_from(fmt, data, 4)
+    sec, nsec = divmod(sec * 1_000_000_000 + nsec + shift_ns, 1_000_000_000)
+    out = bytearray(data)
+    struct.pack_into(fmt, out, 4, sec, nsec)
+    return bytes(out)
+
+
+def _stamped_first(msgtype: str) -> bool:
+    """Whether the type's first field is a std_msgs/Header or a builtin_interfaces/Time."""
+    if msgtype not in _STAMPED_FIRST:
+        from drift_tools.msgdef import MsgDefError, msg_text
+        try:
+            fields = [line.split('#')[0].split() for line in msg_text(msgtype).splitlines()]
+            first = next(f for f in fields if len(f) >= 2 and '=' not in ''.join(f))
+            _STAMPED_FIRST[msgtype] = first[0] in ('std_msgs/Header', 'Header',
+                                                   'builtin_interfaces/Time', 'Time')
+        except (MsgDefError, StopIteration, OSError):
+            _STAMPED_FIRST[msgtype] = False
+    return _STAMPED_FIRST[msgtype]
 
 
 def message_class(msgtype: str):

@@ -1,4 +1,5 @@
 """Sim node: the plant as a car -- vehicle/state out every 10 ms, drift/command in (or CAN)."""
+import json
 import sys
 import time
 
@@ -6,8 +7,9 @@ from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.task import Future
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
+from std_msgs.msg import String
 
 from drift_control.nodes import convert
 from drift_control.nodes.spin import run_node
@@ -88,12 +90,16 @@ class SimNode(Node):
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
         self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
-        self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable)
-        self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
-                                 offer_reference(convert.time_from_msg(m.header.stamp)), 10)
+        self._inputs = [
+            self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable),
+            self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
+                                     offer_reference(convert.time_from_msg(m.header.stamp)), 10)]
         self._wait_recorder = self._wait_recorder and self._mode == 'lockstep' and io == 'ros'
-        if self._wait_recorder:   # all of t = 0 again once the recorder is there
-            self._state_pub.publish(convert.state_to_msg(self._sim.state, self._sim.t))
+        self._recorder_matched = None    # topic -> publishers the recorder is matched with
+        if self._wait_recorder:   # t = 0 goes out once the recorder hears every publisher
+            self.create_subscription(String, '/recorder/matched', self._on_recorder_matched,
+                                     QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                                durability=DurabilityPolicy.TRANSIENT_LOCAL))
         elif self._can is None:
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
@@ -106,6 +112,23 @@ class SimNode(Node):
         """Release the CAN bus of the ``io: can`` mode."""
         if self._can is not None:
             self._can.car.bus.shutdown()
+
+    def _on_recorder_matched(self, msg):
+        try:
+            matched = json.loads(msg.data)
+        except ValueError:
+            return
+        if isinstance(matched, dict):
+            self._recorder_matched = matched
+
+    def _recorder_ready(self) -> bool:
+        """The controller is up (our inputs have publishers) and the recorder is matched with
+        every publisher the graph has of every topic it records: nothing of the run is lost."""
+        if self._recorder_matched is None or \
+                any(sub.get_publisher_count() == 0 for sub in self._inputs):
+            return False
+        return all(self.count_publishers(topic) <= n
+                   for topic, n in self._recorder_matched.items())
 
     def _on_command(self, msg):
         command = convert.decode(convert.command_from_msg, msg, self.get_logger())
@@ -126,20 +149,22 @@ class SimNode(Node):
             self._end(True)
             return
         if self._mode == 'lockstep':
+            if self._wait_recorder:
+                if not self._recorder_ready():
+                    if time.monotonic() - self._started > self._startup:
+                        return self._fail(f'the recorder did not hear every publisher within '
+                                          f'startup_timeout {self._startup:g} s '
+                                          f'(it reports {self._recorder_matched})')
+                    return
+                self._wait_recorder = False
+                self._offered = time.monotonic()
+                self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
             if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
                 # a node that joins late (the NMPC compiling its solver on first use) must still
                 # see the first state: offer it again until the first command (state only; the
                 # recorded truth and clock stay one message per step)
                 self._offered = time.monotonic()
                 self._state_pub.publish(convert.state_to_msg(self._sim.state, self._sim.t))
-            if self._wait_recorder:
-                if self._truth_pub.get_subscription_count() == 0:
-                    if time.monotonic() - self._started > self._startup:
-                        return self._fail(f'no recorder subscribed to the ground truth within '
-                                          f'startup_timeout {self._startup:g} s')
-                    return
-                self._wait_recorder = False
-                self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
             # as many steps as the gate allows (up to the next command), then back to spin
             for _ in range(self._gate.every):
                 if self._sim.done or not self._gate.ready(self._sim.t, time.monotonic()):

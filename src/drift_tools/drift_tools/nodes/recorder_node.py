@@ -5,9 +5,10 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Header
+from std_msgs.msg import Header, String
 
 from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir
@@ -77,9 +78,16 @@ class RecorderNode(Node):
         self._subs = {}        # topic -> (subscription, type, QoS), or None: cannot record
         for topic, (msgtype, latched) in STACK_TOPICS.items():
             self._subscribe(resolve(topic), msgtype, make_qos(True, latched))
-        self.create_timer(period, self._discover)
-        self.create_timer(flush_period, self._flush)
-        self.create_timer(health_period, self._on_health)
+        # which publishers each subscription is matched with: a lock-step simulator starts the
+        # run only once the recorder hears all of them (nothing of the run is lost)
+        self._matched_pub = self.create_publisher(String, '/recorder/matched', make_qos(True, True))
+        self._matched = None
+        # wall-clock timers: under sim time /clock may stand still (a lock-step simulator waits
+        # for us), while discovery, flushes and the disk watch must go on
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(period, self._discover, clock=steady)
+        self.create_timer(flush_period, self._flush, clock=steady)
+        self.create_timer(health_period, self._on_health, clock=steady)
         self.get_logger().info(f'recording to {bag_dir}')
 
     def _subscribe(self, topic, msgtype, qos):
@@ -100,7 +108,10 @@ class RecorderNode(Node):
             return
         try:
             if topic not in self._writer.topics:       # the bag lists only topics that had data
-                self._writer.add_topic(topic, msgtype)
+                qos = self._subs[topic][2]
+                self._writer.add_topic(
+                    topic, msgtype, reliable=qos.reliability == ReliabilityPolicy.RELIABLE,
+                    latched=qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
                 self.get_logger().info(f'recording {topic} [{msgtype}]')
             self._writer.write(topic, data, self.get_clock().now().nanoseconds)
         except OSError as err:
@@ -149,6 +160,14 @@ class RecorderNode(Node):
 
 
     def _discover(self):
+        self._rediscover()
+        matched = {topic: entry[0].get_publisher_count()
+                   for topic, entry in self._subs.items() if entry is not None}
+        if matched != self._matched:
+            self._matched = matched
+            self._matched_pub.publish(String(data=json.dumps(matched, sort_keys=True)))
+
+    def _rediscover(self):
         for topic, msgtype in self._selector.select(self.get_topic_names_and_types()):
             pubs = self.get_publishers_info_by_topic(topic)
             if not pubs or self._subs.get(topic, ()) is None:
