@@ -80,6 +80,7 @@ class SolverParams:
     iteration), QP solver ``qp_solver``; 'sqp' = casadi sqpmethod (exact Hessian) with
     ``qp_solver``; 'ipopt'; 'fatrop'. ``codegen``: compile the problem's functions with gcc,
     cached under ``codegen_dir`` (relative to the repository), interpreted when gcc is missing.
+    ``hpipm_mode``: HPIPM's option preset (its interior-point formulation and safeguards).
     ``warm_start``: each step starts from the last solution 'shifted' by one control period
     (states linear between stages, inputs held, when a stage is longer) or from it as it was
     ('previous'), the real-time iteration continuing on a slowly moving problem.
@@ -87,6 +88,7 @@ class SolverParams:
 
     method: Literal['rti', 'sqp', 'ipopt', 'fatrop'] = 'rti'
     qp_solver: Literal['qrqp', 'osqp', 'hpipm', 'qpoases'] = 'hpipm'
+    hpipm_mode: Literal['speed_abs', 'speed', 'balance', 'robust'] = 'balance'   # HPIPM's preset
     max_iter: int = 1              # SQP / GN iterations per control step
     cold_start_iter: int = 10      # iterations of the first solve (no warm start yet)
     warm_start: Literal['shifted', 'previous'] = 'shifted'   # the last solution moved on by one

@@ -87,7 +87,7 @@ class RtiSolver:
 
     def _conic(self, a_sparsity: ca.Sparsity) -> ca.Function:
         sp, N = self.sp, self.ocp.N
-        opts = dict(_QP_OPTIONS.get(sp.qp_solver, {}))
+        opts = qp_options(sp)
         if sp.qp_solver == 'hpipm':
             opts.update({'N': N, 'nx': [NS] * (N + 1), 'nu': [NU] * N + [0], 'ng': [0] * (N + 1)})
         opts['error_on_fail'] = False
@@ -180,11 +180,19 @@ _QP_OPTIONS = {
     'osqp': {'osqp': {'verbose': False, 'eps_abs': 1e-6, 'eps_rel': 1e-6, 'max_iter': 4000,
                       'polish': True}, 'warm_start_primal': True},
     # HPIPM's default tolerances (1e-8) are not reached with x_0 fixed by equal bounds (it then
-    # stops at iter_max with the right solution); 1e-6 in scaled variables takes ~9 iterations
-    'hpipm': {'hpipm': {'mode': 'balance', 'iter_max': 50, 'res_g_max': 1e-6, 'res_b_max': 1e-6,
+    # stops at iter_max with the right solution); 1e-6 in scaled variables takes ~3-4 iterations
+    'hpipm': {'hpipm': {'iter_max': 50, 'res_g_max': 1e-6, 'res_b_max': 1e-6,
                         'res_d_max': 1e-6, 'res_m_max': 1e-6}},
     'qpoases': {'printLevel': 'none', 'sparse': True},
 }
+
+
+def qp_options(sp: SolverParams) -> dict:
+    """The casadi conic options of ``sp.qp_solver`` (HPIPM in ``sp.hpipm_mode``)."""
+    opts = dict(_QP_OPTIONS.get(sp.qp_solver, {}))
+    if sp.qp_solver == 'hpipm':
+        opts['hpipm'] = dict(opts['hpipm'], mode=sp.hpipm_mode)
+    return opts
 
 
 class NlpSolver:
@@ -226,7 +234,7 @@ class NlpSolver:
         N = self.ocp.N
         structure = {'N': N, 'nx': [NS] * (N + 1), 'nu': [NU] * N + [0], 'ng': [0] * (N + 1)}
         if sp.method == 'sqp':
-            qp_opts = dict(_QP_OPTIONS.get(sp.qp_solver, {}))
+            qp_opts = qp_options(sp)
             if sp.qp_solver == 'hpipm':
                 qp_opts.update(structure)
             qp_opts['error_on_fail'] = False

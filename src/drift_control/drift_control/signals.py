@@ -100,7 +100,7 @@ class VehicleState:
 
     def is_finite(self) -> bool:
         """True when every numeric field is finite (NaN/inf never reach a solver)."""
-        return all(math.isfinite(v) for v in _numbers(self))
+        return _all_finite(self)
 
     def has(self, bits: Validity) -> bool:
         """True when all the given validity bits are set."""
@@ -141,7 +141,7 @@ class Equilibrium:
                            -self.delta, self.T_R)
 
     def is_finite(self) -> bool:
-        return all(math.isfinite(v) for v in _numbers(self))
+        return _all_finite(self)
 
 
 @dataclass(frozen=True)
@@ -164,8 +164,13 @@ class Reference:
     clamped: bool = False        # the map lookup left the grid and was clamped
 
     def is_finite(self) -> bool:
-        return (self.target.is_finite() and all(e.is_finite() for e in self.horizon)
-                and all(math.isfinite(v) for v in _numbers(self)))
+        # asked by the selector, the NMPC and the supervisor each cycle: worked out once (frozen)
+        known = self.__dict__.get('_finite')
+        if known is None:
+            known = (self.target.is_finite() and all(e.is_finite() for e in self.horizon)
+                     and _all_finite(self))
+            object.__setattr__(self, '_finite', known)
+        return known
 
 
 @dataclass(frozen=True)
@@ -179,16 +184,26 @@ class Command:
     mode: Mode = Mode.FULL
 
 
-def _numbers(obj) -> list[float]:
-    """Every float field of a dataclass, tuples of floats flattened; nested dataclasses skipped."""
-    out: list[float] = []
+def _field_numbers(value) -> tuple[float, ...]:
+    """A field's numbers: a float or int, or a tuple of them flattened; none for other values
+    (nested dataclasses, None, strings)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return (float(value),)
+    if isinstance(value, tuple) and all(isinstance(v, (int, float)) for v in value):
+        return tuple(float(v) for v in value)
+    return ()
+
+
+def _all_finite(obj) -> bool:
+    """Every number of a dataclass's fields is finite (a short path for plain floats)."""
     for name in _field_names(type(obj)):
         value = getattr(obj, name)
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            out.append(float(value))
-        elif isinstance(value, tuple) and all(isinstance(v, (int, float)) for v in value):
-            out.extend(float(v) for v in value)
-    return out
+        if type(value) is float:
+            if not math.isfinite(value):
+                return False
+        elif not all(math.isfinite(v) for v in _field_numbers(value)):
+            return False
+    return True
 
 
 @functools.lru_cache(maxsize=None)
