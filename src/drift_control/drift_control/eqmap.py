@@ -165,15 +165,14 @@ class EquilibriumMap:
         R = np.array([q[1] for q in points])
         i = np.abs(self.beta_abs[None, :] - b[:, None]).argmin(axis=1)
         j = np.abs(self.radius[None, :] - R[:, None]).argmin(axis=1)
-        holes = ~self.converged[i, j]
-        values = [s.ev(b, R) for s in self._splines]
+        holes = (~self.converged[i, j]).tolist()
+        values = zip(*(s.ev(b, R).tolist() for s in self._splines))   # per query: V .. T_R
         out = []
-        for n, ((bn, Rn, clamped), (_, _, direction)) in enumerate(zip(points, queries)):
-            V, omega_F, omega_R, delta, T_R = (float(v[n]) for v in values)
+        for (bn, Rn, clamped), (_, _, direction), hole, (V, omega_F, omega_R, delta, T_R) in zip(
+                points, queries, holes, values):
             eq = Equilibrium(V=V, beta=-bn, r=V / Rn, omega_F=omega_F, omega_R=omega_R,
                              delta=delta, T_R=T_R)
-            out.append((eq if direction == Direction.LEFT else eq.mirrored(),
-                        clamped or bool(holes[n])))
+            out.append((eq if direction == Direction.LEFT else eq.mirrored(), clamped or hole))
         return out
 
     def _warn_clamped(self, beta_abs, radius, b, R) -> None:

@@ -63,12 +63,12 @@ def signals(X: np.ndarray, Ys: np.ndarray) -> np.ndarray:
 
 
 def _state(t: float, row: np.ndarray) -> VehicleState:
+    (V, beta, r, vx, vy, ax, ay, w_FL, w_FR, w_RL, w_RR, delta, steering_torque, drive_torque,
+     x, y, yaw) = row.tolist()   # Python floats, in _COLUMNS order
     return VehicleState(
-        stamp=t, V=float(row[0]), beta=float(row[1]), r=float(row[2]), vx=float(row[3]),
-        vy=float(row[4]), ax=float(row[5]), ay=float(row[6]),
-        wheel_speeds=tuple(float(v) for v in row[7:11]), delta=float(row[11]),
-        steering_torque=float(row[12]), drive_torque=float(row[13]), x=float(row[14]),
-        y=float(row[15]), yaw=math.remainder(float(row[16]), 2.0 * math.pi))
+        stamp=t, V=V, beta=beta, r=r, vx=vx, vy=vy, ax=ax, ay=ay,
+        wheel_speeds=(w_FL, w_FR, w_RL, w_RR), delta=delta, steering_torque=steering_torque,
+        drive_torque=drive_torque, x=x, y=y, yaw=math.remainder(yaw, 2.0 * math.pi))
 
 
 class Plant:
