@@ -464,9 +464,9 @@ def _shift_rows(rows: np.ndarray, shift: float, hold: bool = False) -> np.ndarra
 
 def reference_rows(ref: Reference, N: int) -> np.ndarray:
     """(N+1, 7) reference rows: ``ref.horizon`` per stage (padded with its last), else target."""
-    rows = [ref.horizon[min(k, len(ref.horizon) - 1)] if ref.horizon else ref.target
-            for k in range(N + 1)]
-    out = np.array([[e.V, e.beta, e.r, e.omega_F, e.omega_R, e.delta, e.T_R] for e in rows])
+    stages = ref.horizon or (ref.target,)
+    rows = np.array([[e.V, e.beta, e.r, e.omega_F, e.omega_R, e.delta, e.T_R] for e in stages])
+    out = rows[np.minimum(np.arange(N + 1), len(stages) - 1)]
     assert out.shape == (N + 1, NREF)
     return out
 

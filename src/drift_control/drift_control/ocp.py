@@ -344,9 +344,10 @@ class Ocp:
     def clip_initial_state(self, x_init) -> np.ndarray:
         """Measured steering beyond the limit is taken at the limit (keeps the QP feasible)."""
         x = np.array(x_init, dtype=float)
-        x[X.DELTA] = np.clip(x[X.DELTA], -self.bounds.delta_max, self.bounds.delta_max)
-        x[[S_T_ACT, S_T_LAST]] = np.clip(x[[S_T_ACT, S_T_LAST]], self.bounds.T_R_min,
-                                         self.bounds.T_R_max)
+        b = self.bounds
+        for i, low, high in ((X.DELTA, -b.delta_max, b.delta_max), (S_T_ACT, b.T_R_min, b.T_R_max),
+                             (S_T_LAST, b.T_R_min, b.T_R_max)):
+            x[i] = min(max(x[i], low), high)   # np.clip's order, without its call overhead
         return x
 
 
