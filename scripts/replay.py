@@ -3,18 +3,24 @@
 
     replay.py BAG                       publish every topic at recorded timing
     replay.py BAG --rate 4              four times faster (--rate 0: as fast as possible)
-    replay.py BAG --topics /vehicle/state --lockstep
-                                        drive a live selector + NMPC in sim time: publish /clock
-                                        and each state, then wait for that step's command
+    replay.py BAG --clock --loop 0      publish /clock from the log time, loop until stopped
+                                        (each pass shifted forward: time never runs backwards)
+    replay.py BAG --start 20 --end 30   a window, seconds after the first message
+    replay.py BAG --lockstep [--json F] drive a live selector + NMPC in sim time: publish /clock
+                                        and each state, wait for that step's command, and compare
+                                        the commands with the recorded ones
     replay.py BAG --rerun [--json F]    no ROS: run the NMPC core on the recorded states and
                                         references and report recorded vs recomputed commands
 
 The ROS environment (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST by default) is taken
-from the caller.
+from the caller. Each topic is offered with the QoS it was recorded with (the latched path stays
+latched). SIGINT or SIGTERM ends the replay cleanly.
 """
 import argparse
+import itertools
 import json
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -26,42 +32,80 @@ COMMAND_TOPIC = '/drift/command'
 def publish(args) -> int:
     import rclpy
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
     from rosgraph_msgs.msg import Clock
 
-    from drift_tools.replay import Pacer, iter_raw, message_class
+    from drift_tools.replay import Pacer, iter_replay, message_class, topic_qos
 
     topics = args.topics or None
     if args.lockstep and topics is None:
         topics = [STATE_TOPIC]     # the controller runs live; recorded outputs would clash
+    try:
+        recorded_qos = topic_qos(args.bag)
+        # /clock: a bag that has it (a sim-time run) replays its own with --clock; lock-step
+        # publishes each state's stamp before it, as the simulator did; otherwise the log time
+        own_clock = args.clock and not args.lockstep and '/clock' in recorded_qos
+        publish_clock = args.lockstep or (args.clock and not own_clock)
+        if topics is not None:
+            topics = [t for t in topics if t != '/clock'] + (['/clock'] if own_clock else [])
+        messages = iter_replay(args.bag, topics, args.start, args.end, args.loop)
+        first = next(messages, None)
+    except (ValueError, LookupError, OSError) as err:
+        print(f'replay: {err}', file=sys.stderr)
+        return 2
+    if first is None:
+        print('replay: nothing to publish (no such topics in the bag)', file=sys.stderr)
+        return 2
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    rclpy.init()
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('replay')
-    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.VOLATILE)
     publishers, commands = {}, []
-    clock_pub = node.create_publisher(Clock, '/clock', 10) if args.lockstep else None
+    clock_pub = node.create_publisher(Clock, '/clock', 10) if publish_clock else None
+    recorded, answered = {}, set()       # stamps [ns] of the recorded / received commands
+    command_sub = None
     if args.lockstep:
         from drift_msgs.msg import DriftCommand
-        node.create_subscription(DriftCommand, COMMAND_TOPIC, commands.append, 10)
+
+        def on_command(msg):
+            commands.append(msg)
+            answered.add(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        command_sub = node.create_subscription(DriftCommand, COMMAND_TOPIC, on_command, 100)
+        recorded = _recorded_commands(args.bag)   # stamp [ns] -> (delta, torque, mode)
     pacer = Pacer(0.0 if args.lockstep else args.rate)
     sent = waited_out = 0
     try:
-        for raw in iter_raw(args.bag, topics):
+        for raw in itertools.chain([first], messages):
+            if raw.topic == '/clock' and publish_clock:
+                continue
             if raw.topic not in publishers:
+                reliable, latched = recorded_qos.get(raw.topic, (True, False))
+                qos = QoSProfile(
+                    depth=10, reliability=ReliabilityPolicy.RELIABLE if reliable
+                    else ReliabilityPolicy.BEST_EFFORT,
+                    durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                    else DurabilityPolicy.VOLATILE)
                 publishers[raw.topic] = node.create_publisher(message_class(raw.msgtype),
                                                               raw.topic, qos)
-                _wait_for_subscribers(node, publishers[raw.topic], args.discovery_timeout)
+                _wait_for_subscribers(node, publishers[raw.topic], args.discovery_timeout,
+                                      answer=command_sub if raw.topic == STATE_TOPIC else None)
             pacer.wait_until(raw.t_ns)
-            if clock_pub is not None:
+            if clock_pub is not None and not args.lockstep:
                 clock_pub.publish(_clock(raw.t_ns))
+            elif clock_pub is not None and raw.topic == STATE_TOPIC:
+                clock_pub.publish(_clock(_stamp_ns(raw)))
             before = len(commands)
             publishers[raw.topic].publish(raw.data)
             sent += 1
-            if args.lockstep and raw.topic == STATE_TOPIC:
+            stamp = _stamp_ns(raw) if args.lockstep and raw.topic == STATE_TOPIC else None
+            if stamp is not None and (not recorded or stamp in recorded):
+                # as the lock-step simulator: no step before this state's command is in (the
+                # recorded run had one for it)
                 deadline = time.monotonic() + args.step_timeout
-                while len(commands) == before and time.monotonic() < deadline:
+                while not (stamp in answered if recorded else len(commands) > before) \
+                        and time.monotonic() < deadline:
                     rclpy.spin_once(node, timeout_sec=0.005)
-                waited_out += len(commands) == before
+                waited_out += not (stamp in answered if recorded else len(commands) > before)
             else:
                 rclpy.spin_once(node, timeout_sec=0.0)
     except (ValueError, LookupError) as err:
@@ -75,14 +119,69 @@ def publish(args) -> int:
     print(f'replay: published {sent} messages on {len(publishers)} topics'
           + (f'; {len(commands)} commands received, {waited_out} steps timed out'
              if args.lockstep else ''))
+    if args.lockstep and recorded:
+        report = _compare(commands, recorded)
+        print(f'replay: {report["matched"]} of {report["recorded"]} recorded commands answered; '
+              f'max |delta - recorded| {report["delta_max_abs_diff"]:.3g} rad, '
+              f'max |torque - recorded| {report["torque_max_abs_diff"]:.3g} Nm, '
+              f'{report["mode_mismatches"]} mode mismatches')
+        if args.json:
+            Path(args.json).write_text(json.dumps(report, indent=2))
     return 0
 
 
-def _wait_for_subscribers(node, pub, timeout: float) -> None:
-    """Give discovery its ~2.5 s: wait until someone listens (or the timeout passes)."""
+def _stamp_ns(raw) -> int:
+    """The header stamp of a raw VehicleState (its first field) [ns]."""
+    import struct
+    sec, nsec = struct.unpack_from('<iI' if raw.data[1] == 1 else '>iI', raw.data, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+def _recorded_commands(bag) -> dict:
+    from drift_tools.bag import read_bag
+    out = {}
+    for m in read_bag(bag, topics=[COMMAND_TOPIC]).get(COMMAND_TOPIC, []):
+        c = m.msg
+        out[c.header.stamp.sec * 1_000_000_000 + c.header.stamp.nanosec] = (
+            c.delta, c.drive_torque, c.mode)
+    return out
+
+
+def _compare(commands, recorded: dict) -> dict:
+    """Live commands against the recorded ones of the same stamps."""
+    d_delta = d_torque = 0.0
+    matched = modes = 0
+    for c in commands:
+        key = c.header.stamp.sec * 1_000_000_000 + c.header.stamp.nanosec
+        if key not in recorded:
+            continue
+        delta, torque, mode = recorded[key]
+        matched += 1
+        d_delta = max(d_delta, abs(c.delta - delta))
+        d_torque = max(d_torque, abs(c.drive_torque - torque))
+        modes += c.mode != mode
+    return {'recorded': len(recorded), 'received': len(commands), 'matched': matched,
+            'delta_max_abs_diff': d_delta, 'torque_max_abs_diff': d_torque,
+            'mode_mismatches': modes}
+
+
+def _wait_for_subscribers(node, pub, timeout: float, answer=None) -> None:
+    """Give discovery its ~2.5 s: wait until someone listens (or the timeout passes).
+
+    With ``answer`` (the command subscription of a lock-step replay), also until the controller
+    publishes, and until every subscriber the graph shows on the topic is matched: a state the
+    NMPC misses would shift its solving phase against the recorded run's.
+    """
     import rclpy
+
+    def ready():
+        subscribers = pub.get_subscription_count()
+        if answer is None:
+            return subscribers > 0
+        return (subscribers > 0 and answer.get_publisher_count() > 0
+                and subscribers >= node.count_subscribers(pub.topic_name))
     deadline = time.monotonic() + timeout
-    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+    while not ready() and time.monotonic() < deadline:
         rclpy.spin_once(node, timeout_sec=0.05)
 
 
@@ -120,7 +219,18 @@ def main(argv=None) -> int:
     parser.add_argument('bag', help='rosbag2 directory (metadata.yaml + .mcap)')
     parser.add_argument('--rate', type=float, default=1.0, help='speed-up factor; 0 = no pacing')
     parser.add_argument('--topics', nargs='*', help='only these topics (absolute names)')
-    parser.add_argument('--lockstep', action='store_true', help='publish /clock, wait per step')
+    parser.add_argument('--clock', action='store_true',
+                        help='publish /clock for nodes with use_sim_time: the bag\'s own if it '
+                             'recorded one (a sim-time run), else from the log time')
+    parser.add_argument('--loop', type=int, default=1, metavar='N',
+                        help='play N times (0: until stopped); each pass later in time, stamps '
+                             'and /clock shifted, so time never runs backwards')
+    parser.add_argument('--start', type=float, default=0.0,
+                        help='from this many seconds after the first message')
+    parser.add_argument('--end', type=float, default=None,
+                        help='up to this many seconds after the first message')
+    parser.add_argument('--lockstep', action='store_true',
+                        help='publish /clock, wait per state for its command')
     parser.add_argument('--step-timeout', type=float, default=1.0, help='lockstep wait [s]')
     parser.add_argument('--discovery-timeout', type=float, default=5.0, help='[s]')
     parser.add_argument('--rerun', action='store_true', help='re-run the NMPC core offline')
@@ -129,7 +239,7 @@ def main(argv=None) -> int:
                         'run\'s scenario, else dry)')
     parser.add_argument('--vehicle', help='the car the run drove (default: the recorded run\'s, '
                         'else config/defaults.yaml\'s)')
-    parser.add_argument('--json', help='with --rerun: write the comparison here')
+    parser.add_argument('--json', help='with --rerun or --lockstep: write the comparison here')
     args = parser.parse_args(argv)
     if not (Path(args.bag) / 'metadata.yaml').exists():
         print(f'replay: {args.bag}: not a bag directory (no metadata.yaml)', file=sys.stderr)

@@ -70,3 +70,36 @@ def test_pacer_keeps_recorded_spacing_scaled_by_rate():
     fast.wait_until(0)
     fast.wait_until(10**12)
     assert len(slept) == 2
+
+
+def test_a_window_and_loops_shift_time_forward(tmp_path):
+    from drift_tools.replay import iter_replay, restamp
+    bag = make_bag(tmp_path / 'bag', n=20)          # states every 10 ms from 1 s
+    one = list(iter_replay(bag, ['/vehicle/state'], start=0.05, end=0.1))
+    assert [r.t_ns for r in one] == [1_050_000_000 + i * 10_000_000 for i in range(6)]
+    two = list(iter_replay(bag, ['/vehicle/state'], start=0.05, end=0.1, loops=2))
+    times = [r.t_ns for r in two]
+    assert times == sorted(times) and len(two) == 12 and times[6] == times[5] + 10_000_000
+    cls = message_class('drift_msgs/msg/VehicleState')
+    msg = rclpy_serialization.deserialize_message(two[6].data, cls)
+    first = rclpy_serialization.deserialize_message(two[0].data, cls)
+    shift = (msg.header.stamp.sec - first.header.stamp.sec) * 10**9 + \
+        msg.header.stamp.nanosec - first.header.stamp.nanosec
+    assert shift == two[6].t_ns - two[0].t_ns, 'the stamp moves with the log time'
+    assert restamp(b'\x00\x01\x00\x00abcdefgh', 'std_msgs/msg/String', 5) == \
+        b'\x00\x01\x00\x00abcdefgh', 'no leading stamp: unchanged'
+    with pytest.raises(ValueError, match='outside the bag'):
+        list(iter_replay(bag, start=5.0))
+
+
+def test_topics_keep_their_recorded_qos(tmp_path):
+    from drift_tools.replay import topic_qos
+    with BagWriter(tmp_path / 'bag') as bag:
+        bag.add_topic('/drift/path', 'nav_msgs/msg/Path', latched=True)
+        bag.add_topic('/vehicle/state', 'drift_msgs/msg/VehicleState', reliable=False)
+        bag.write('/drift/path', rclpy_serialization.serialize_message(
+            pytest.importorskip('nav_msgs.msg').Path()), 1)
+        bag.write('/vehicle/state', rclpy_serialization.serialize_message(
+            drift_msgs.VehicleState()), 2)
+    assert topic_qos(tmp_path / 'bag') == {'/drift/path': (True, True),
+                                           '/vehicle/state': (False, False)}

@@ -52,14 +52,19 @@ def iter_raw(bag_dir, topics=None) -> Iterator[RawMessage]:
 
 
 def _iter_indexed(bag_dir: Path, wanted) -> Iterator[RawMessage]:
+    """In log-time order, ties in the order they were written: a lock-step bag logs several
+    states at one sim time, and they must replay in their own order."""
     from mcap.reader import make_reader
+    out = []
     for name in bag_info(bag_dir).files:
         with open(bag_dir / name, 'rb') as fh:
             reader = make_reader(fh)
             for schema, channel, message in reader.iter_messages(
-                    topics=None if wanted is None else sorted(wanted), log_time_order=True):
-                yield RawMessage(channel.topic, _msgtype(schema), message.log_time,
-                                 bytes(message.data))
+                    topics=None if wanted is None else sorted(wanted), log_time_order=False):
+                out.append(RawMessage(channel.topic, _msgtype(schema), message.log_time,
+                                      bytes(message.data)))
+    out.sort(key=lambda m: m.t_ns)     # stable: file order among equal times
+    yield from out
 
 
 def _msgtype(schema) -> str:
