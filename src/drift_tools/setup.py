@@ -19,6 +19,7 @@ setup(
     entry_points={
         'console_scripts': [
             'recorder = drift_tools.nodes.recorder_node:main',
+            'drift = drift_tools.operator:main',
         ],
     },
 )

@@ -13,6 +13,7 @@ from drift_control.assembly import MODES, load_setup
 from drift_control.nmpc import LockstepTrigger
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
+from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir
 REALTIME_REFERENCE_WAIT = 0.005   # trigger: state, wall time [s]
@@ -59,6 +60,7 @@ class NmpcNode(Node):
         else:   # wall clock: sim time stands still while the simulator waits for us
             self.create_timer(0.002, self._poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_timer(1.0, self._publish_diagnostics)
+        lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} '
                                f'(mu {surface.mu:g}), trigger {trigger}, '
                                f'solver {params.solver.method}/{params.solver.qp_solver}')

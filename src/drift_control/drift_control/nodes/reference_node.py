@@ -13,6 +13,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 
 from drift_control.assembly import load_setup
 from drift_control.nodes import convert
+from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import PeriodGate
 from drift_control.params import ParamError, config_dir
@@ -52,6 +53,7 @@ class ReferenceNode(Node):
             self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
                                      qos_profile_sensor_data)
             self.create_timer(params.period, self._on_tick)
+        lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'{setup.vehicle_name} on {setup.surface.name}, path {path.name}: '
                                f'{path.length:.1f} m; radii {params.radius_min:g}'
                                f'..{params.radius_max:g} m')

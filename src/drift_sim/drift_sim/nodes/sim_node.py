@@ -12,6 +12,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
 from drift_control.nodes import convert
+from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import Pacer
 from drift_control.params import ParamError, config_dir
@@ -104,6 +105,7 @@ class SimNode(Node):
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
         self.create_timer(tick, self._on_tick)
+        lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), vehicle '
                                f'{loaded.scenario.vehicle}, seed '
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')

@@ -10,12 +10,16 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Header, String
 
+from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
 from drift_tools.disk import MIB, DiskLevel, DiskLimits, DiskWatch
 from drift_tools.recording import STACK_NAMESPACES, STACK_TOPICS, TopicSelector
 from drift_tools.run_info import RECORD_NAME
+
+
+DISK_PARAMS = ('disk_warn_free_mb', 'disk_warn_minutes', 'disk_stop_free_mb')   # run-time
 
 
 def message_class(msgtype: str):
@@ -88,6 +92,7 @@ class RecorderNode(Node):
         self.create_timer(period, self._discover, clock=steady)
         self.create_timer(flush_period, self._flush, clock=steady)
         self.create_timer(health_period, self._on_health, clock=steady)
+        lock_parameters(self, {name: self._disk_setter(name) for name in DISK_PARAMS})
         self.get_logger().info(f'recording to {bag_dir}')
 
     def _subscribe(self, topic, msgtype, qos):
@@ -101,6 +106,20 @@ class RecorderNode(Node):
             cls, topic, lambda data, t=topic, m=msgtype: self._on_message(t, m, data), qos,
             raw=True)
         self._subs[topic] = (sub, msgtype, qos)
+
+    def _disk_setter(self, name: str):
+        """``param set`` of one disk threshold: all three validated together, then used."""
+        def apply(value):
+            v = {n: self.get_parameter(n).value for n in DISK_PARAMS}
+            v[name] = value
+            try:
+                self._disk.limits = DiskLimits(warn_free=v['disk_warn_free_mb'] * MIB,
+                                               warn_time_left=v['disk_warn_minutes'] * 60.0,
+                                               stop_free=v['disk_stop_free_mb'] * MIB)
+            except (TypeError, ValueError) as err:
+                raise ParamError(str(err)) from None
+            self._warned_at = None       # a new threshold: say at once where we stand
+        return apply
 
     def _on_message(self, topic, msgtype, data):
         if self.failure:

@@ -10,6 +10,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
+from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
 from drift_control.ocp import load_nmpc_params
 from drift_control.params import config_dir, load_vehicle, parse_overrides
@@ -64,6 +65,7 @@ class BridgeNode(Node):
         self.create_service(SetBool, 'bridge/arm', self._on_arm)
         self.create_timer(params.cycle_time, self._on_tick)
         self.create_timer(self._diag_period, self._on_diag)
+        lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}'
                                + (', auto-arm (simulation)' if params.auto_arm else ''))
 
