@@ -16,7 +16,7 @@ import numpy as np
 
 from drift_control.compiled import HPIPM_FLAGS, CompiledFunction, build_cached
 from drift_control.ocp import NS, NXO, Ocp, SolverParams
-from drift_control.params import config_dir
+from drift_control.params import cache_dir
 from drift_control.vehicle import NU
 
 log = logging.getLogger(__name__)
@@ -36,12 +36,12 @@ def compile_cached(fn_or_solver, name: str, sp: SolverParams, dependencies: bool
                    link=()):
     """Generate C for a casadi Function (or an nlpsol's dependencies), compile, return the .so path.
 
-    Cached under ``sp.codegen_dir`` (relative to the repository); None when gcc is missing or the
+    Cached under ``sp.codegen_dir`` (relative to ``cache_dir()``); None when gcc is missing or the
     compilation fails (the caller stays interpreted).
     """
     cache = Path(sp.codegen_dir)
     if not cache.is_absolute():
-        cache = config_dir().parent / cache
+        cache = cache_dir() / cache   # the checkout, else a user cache: never the install space
     return build_cached(fn_or_solver, name, cache, sp.gcc_flags, link, dependencies)
 
 
@@ -54,7 +54,7 @@ class RtiSolver:
 
     With ``codegen`` and a QP solver casadi generates C for (HPIPM, qrqp), one iteration
     (linearisation, QP, step) is one compiled call (``iteration``); a failed QP is then solved
-    again by the interpreted functions (``qp_data``, ``qp``), which report its status.
+    again by the interpreted QP solver on the same data, which reports its status.
     """
 
     def __init__(self, ocp: Ocp, sp: SolverParams):
@@ -94,7 +94,8 @@ class RtiSolver:
         return ca.conic('nmpc_qp', sp.qp_solver, {'h': self.H.sparsity(), 'a': a_sparsity}, opts)
 
     def _compiled_iteration(self, grad_fn) -> CompiledFunction | None:
-        """One iteration, ``(ws, p, lbs, ubs) -> (dws, J, qp_cost)`` in scaled variables, compiled.
+        """One iteration, ``(ws, p, lbs, ubs) -> (QP data, J, dws, qp_cost, ...)`` in scaled
+        variables, compiled.
 
         The gap Jacobian comes from one SX function per stage (value and forward derivatives
         share their subexpressions: ~40 % less work than differentiating the mapped MX gaps,
@@ -124,31 +125,38 @@ class RtiSolver:
         A = ca.vertcat(*[ca.horzcat(ca.MX(NS, k * nz), jacs[:, k * nz:(k + 1) * nz], minus_eye,
                                     ca.MX(NS, ocp.nw - (k + 1) * nz - NS)) for k in range(N)])
         grad, J = grad_fn(ws, p)
-        qp = self._conic(A.sparsity())
+        self._qp_same = self._conic(A.sparsity())   # the QP as compiled, for a failure's status
         # the generated HPIPM reads its initial guesses: zeros, as the interpreted call passes
         zeros = ca.DM.zeros(ocp.nw), ca.DM.zeros(A.shape[0])
-        sol = qp(h=self.H, g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws, ubx=ubs - ws,
-                 x0=zeros[0], lam_x0=zeros[0], lam_a0=zeros[1])
-        # ... and writes every multiplier: they are outputs, unused
+        sol = self._qp_same(h=self.H, g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws,
+                            ubx=ubs - ws, x0=zeros[0], lam_x0=zeros[0], lam_a0=zeros[1])
+        # outputs in the order the generated code writes them: the QP data (computed before
+        # the QP) stay readable when the QP fails; every multiplier is written, so requested
         fn = ca.Function('nmpc_rti_iteration', [ws, p, lbs, ubs],
-                         [sol['x'], J, sol['cost'], sol['lam_x'], sol['lam_a']])
+                         [grad, A.nz[:], gap, J, sol['x'], sol['cost'], sol['lam_x'],
+                          sol['lam_a']])
         so = compile_cached(fn, 'nmpc_rti_iteration', self.sp,
                             link=HPIPM_FLAGS if self.sp.qp_solver == 'hpipm' else ())
         return CompiledFunction(so, fn) if so is not None else None
 
     def _iterate(self, ws, p, lbs, ubs):
         """One iteration: (dws, J, QP cost, QP status); dws is None when the QP failed."""
-        it = self.iteration
-        if it is not None:
+        it, qp = self.iteration, self.qp
+        if it is None:
+            grad, A, gap, J = self.qp_data(ws, p)
+            gap = np.asarray(gap).ravel()
+        else:
             it.inputs[0][:], it.inputs[1][:], it.inputs[2][:], it.inputs[3][:] = ws, p, lbs, ubs
             if it():
-                dws, J, cost = it.outputs[:3]
-                return dws.copy(), J[0], cost[0], _CODEGEN_QP[self.sp.qp_solver]
-            # a failed QP: the interpreted functions do the same arithmetic and name the status
-        grad, A, gap, J = self.qp_data(ws, p)
-        gap = np.asarray(gap).ravel()
-        sol = self.qp(h=self.H, g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws, ubx=ubs - ws)
-        stats = self.qp.stats()
+                dws, cost = it.outputs[4:6]
+                return dws.copy(), it.outputs[3][0], cost[0], _CODEGEN_QP[self.sp.qp_solver]
+            # a failed QP: solved again interpreted on the same data, which names the status
+            grad, a_nz, gap, J = (out.copy() for out in it.outputs[:4])
+            qp = self._qp_same
+            A = ca.DM(qp.sparsity_in('a'), a_nz)
+            J = J[0]
+        sol = qp(h=self.H, g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws, ubx=ubs - ws)
+        stats = qp.stats()
         status = str(stats.get('return_status', ''))
         if not stats.get('success', False):
             return None, None, None, status

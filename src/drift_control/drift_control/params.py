@@ -22,12 +22,45 @@ class ParamError(ValueError):
     """A parameter file or value is missing, unknown, of the wrong type or out of range."""
 
 
+# In a checkout this file is <repo>/src/drift_control/drift_control/params.py; installed, it is
+# <prefix>/lib/python3.X/site-packages/drift_control/params.py, with no config/ at parents[3].
+_CHECKOUT = Path(__file__).resolve().parents[3]
+
+
 def config_dir() -> Path:
-    """The project's ``config/`` directory: ``$DRIFT_CONFIG_DIR`` or the one of this checkout."""
+    """The project's ``config/`` directory: ``$DRIFT_CONFIG_DIR``, else this checkout's, else the
+    one installed in drift_control's share directory (found through the ament index)."""
     env = os.environ.get('DRIFT_CONFIG_DIR')
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[3] / 'config'
+    if (_CHECKOUT / 'config').is_dir():
+        return _CHECKOUT / 'config'
+    share = _share_dir()
+    if share is not None and (share / 'config').is_dir():
+        return share / 'config'
+    raise ParamError('no config directory: set DRIFT_CONFIG_DIR, run from a checkout, or source '
+                     'an install space that has drift_control (install/setup.bash)')
+
+
+def cache_dir() -> Path:
+    """Where compiled solvers are cached (``.codegen/`` below it): this checkout's root, else
+    ``$XDG_CACHE_HOME/drift_stack`` (``~/.cache/drift_stack``), never an install space."""
+    if (_CHECKOUT / 'config').is_dir():
+        return _CHECKOUT
+    return Path(os.environ.get('XDG_CACHE_HOME') or Path.home() / '.cache') / 'drift_stack'
+
+
+def _share_dir() -> Path | None:
+    """drift_control's share directory in the ament index (AMENT_PREFIX_PATH), None without."""
+    try:
+        from ament_index_python.packages import (PackageNotFoundError,
+                                                 get_package_share_directory)
+    except ImportError:   # the core runs without ROS; then only a checkout or the variable
+        return None
+    try:
+        return Path(get_package_share_directory('drift_control'))
+    except (PackageNotFoundError, OSError):   # not indexed, or AMENT_PREFIX_PATH unset
+        return None
 
 
 def load_yaml(path: str | os.PathLike) -> dict:

@@ -24,7 +24,7 @@ import casadi as ca
 import numpy as np
 
 from drift_control.compiled import CompiledFunction, build_cached
-from drift_control.params import config_dir
+from drift_control.params import cache_dir
 from drift_control.tyre import combined_forces
 from drift_control.vehicle import smooth_max
 from drift_sim.params import PlantParams
@@ -217,8 +217,8 @@ class PlantModel:
 
 def _compile(fun: ca.Function) -> CompiledFunction | None:
     """``fun`` as C built by gcc, cached by the hash of its source beside the NMPC's (``.codegen``
-    of the checkout, else the temporary directory); None (interpreted) when that fails."""
-    for cache in (config_dir().parent / '.codegen', Path(tempfile.gettempdir()) / 'drift_codegen'):
+    under ``cache_dir()``, else the temporary directory); None (interpreted) when that fails."""
+    for cache in (cache_dir() / '.codegen', Path(tempfile.gettempdir()) / 'drift_codegen'):
         so = build_cached(fun, fun.name(), cache)
         if so is not None:
             return CompiledFunction(so, fun)
