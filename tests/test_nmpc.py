@@ -11,7 +11,7 @@ from drift_control.nmpc import Nmpc, NmpcStatus, _shift_rows, reference_rows
 from drift_control.ocp import NXO, NmpcParams, Ocp, SolverParams, load_nmpc_params
 from drift_control.params import ParamError, load_surface, load_vehicle
 from drift_control.signals import Direction, Equilibrium, Mode, Reference, Validity, VehicleState
-from drift_control.vehicle import VehicleModel
+from drift_control.vehicle import X, VehicleModel
 
 TS = 0.02
 
@@ -464,6 +464,28 @@ def test_compiled_iteration_matches_interpreted(vp, params, eq30, qp):
     assert compiled[3] == interpreted[3], 'same success status'
     assert np.allclose(compiled[0], interpreted[0], rtol=0, atol=1e-9)
     assert compiled[1] == interpreted[1] and compiled[2] == pytest.approx(interpreted[2], abs=1e-9)
+
+
+def test_failed_compiled_qp_names_its_status(vp, params, eq30):
+    """A QP the compiled iteration cannot solve fails with the status the interpreted one
+    reports (it is solved again, interpreted, on the same data)."""
+    if not shutil.which('gcc'):
+        pytest.skip('no gcc')
+    ctrl = Nmpc(vp, params)
+    solver, ocp = ctrl._solver, ctrl.ocp
+    x0 = np.r_[eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta, eq30.T_R,
+               eq30.T_R]
+    w0 = ocp.join(np.tile(x0, (ocp.N + 1, 1)), np.tile([0.0, eq30.T_R], (ocp.N, 1)))
+    p = ocp.pack_params(reference_rows(Reference(0.0, eq30), ocp.N), 1.0)
+    lb, ub = ocp.bounds_for(x0)
+    i = ocp.x(np.arange(ocp.nw), 1)[X.DELTA]   # the steering of state 1: out of reach
+    lb[i] = ub[i] = eq30.delta + 0.3
+    args = (w0 / solver.D, p, lb / solver.D, ub / solver.D)
+    compiled = solver._iterate(*args)
+    solver.iteration = None
+    interpreted = solver._iterate(*args)
+    assert compiled[0] is None and interpreted[0] is None
+    assert compiled[3] == interpreted[3]
 
 
 @pytest.mark.slow

@@ -133,7 +133,7 @@ class RtiSolver:
         # outputs in the order the generated code writes them: the QP data (computed before
         # the QP) stay readable when the QP fails; every multiplier is written, so requested
         fn = ca.Function('nmpc_rti_iteration', [ws, p, lbs, ubs],
-                         [grad, A.nz[:], gap, J, sol['x'], sol['cost'], sol['lam_x'],
+                         [ca.densify(grad), A.nz[:], gap, J, sol['x'], sol['cost'], sol['lam_x'],
                           sol['lam_a']])
         so = compile_cached(fn, 'nmpc_rti_iteration', self.sp,
                             link=HPIPM_FLAGS if self.sp.qp_solver == 'hpipm' else ())
