@@ -30,7 +30,7 @@ from pathlib import Path
 from drift_control.params import ParamError, config_dir, vehicle_names
 from drift_control.scenario import scenario_names
 from drift_sim.campaign import campaign_jobs, default_config, run_jobs
-from drift_sim.executor import ClusterError, check_address, make_executor
+from drift_sim.executor import ClusterError, check_address, interrupt, make_executor
 from drift_sim.store import RunStore
 from drift_sim.sweep import ERROR, campaign_summary, format_campaign, parse_seeds
 
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     header = (f'campaign: {len(jobs)} runs ({len(scenarios)} scenario(s) x {len(vehicles)} '
               f'vehicle(s) x {max(args.plants, 1)} plant(s) x {len(seeds)} seed(s)); '
               f'{len(jobs) - todo} already in {args.store}')
-    previous = signal.getsignal(signal.SIGTERM)
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     t0 = time.perf_counter()
     try:
         rows = _run(jobs, todo, store, args, header)
@@ -99,7 +99,8 @@ def main(argv=None) -> int:
               '(the same command resumes)', file=sys.stderr)
         return 130
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     wall = time.perf_counter() - t0
     summary = campaign_summary(rows, args.worst)
     text = format_campaign(summary)
@@ -123,12 +124,9 @@ def _run(jobs, todo, store, args, header: str) -> list[dict]:
         print(header, file=sys.stderr)   # after the workers: a refused cluster is one line
         # `kill` stops like Ctrl-C: the finished runs stay, the workers are released (set
         # after Ray's start, whose own SIGTERM handler would end the process at once)
-        signal.signal(signal.SIGTERM, _interrupt)
+        signal.signal(signal.SIGTERM, interrupt)
+        signal.signal(signal.SIGINT, interrupt)   # also where a shell passed it on ignored
         return run_jobs(jobs, pool, store, progress=not args.quiet)
-
-
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 def _fail(err) -> int:

@@ -46,6 +46,21 @@ class Executor(ABC):
         self.close()
 
 
+_interrupted = False
+
+
+def interrupt(signum=None, frame=None):
+    """Signal handler (SIGINT, SIGTERM): raise KeyboardInterrupt, and remember it.
+
+    A run in this process may be inside CasADi when the signal comes: CasADi turns the
+    KeyboardInterrupt into an error of that call, which the run would report as its result.
+    The local executor looks at the flag after each call instead.
+    """
+    global _interrupted
+    _interrupted = True
+    raise KeyboardInterrupt
+
+
 class LocalExecutor(Executor):
     """One call after the other in this process: no start-up cost, a debugger works."""
 
@@ -55,6 +70,8 @@ class LocalExecutor(Executor):
                 result = fn(item)
             except Exception as err:   # noqa: BLE001 - reported as that item's result
                 result = err
+            if _interrupted:           # the call's result may be the interrupt itself
+                raise KeyboardInterrupt
             yield item, result
 
 
