@@ -29,7 +29,6 @@ VIEW_TOPICS = {
 VALID_POSE = 1024          # drift_msgs/VehicleState.VALID_POSE
 ARROW, CUBE, SPHERE, LINE_STRIP, LINE_LIST, TEXT = 0, 1, 2, 4, 5, 9   # Marker.type
 ADD, DELETE = 0, 2                                                    # Marker.action
-WHEELS = ('FL', 'FR', 'RL', 'RR')
 
 
 @dataclass(frozen=True)
