@@ -10,6 +10,7 @@ rate-limited toward the reference) after repeated failures.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -452,14 +453,25 @@ def _clip(value: float, low: float, high: float) -> float:
 def _shift_rows(rows: np.ndarray, shift: float, hold: bool = False) -> np.ndarray:
     """``rows`` (one per stage) ``shift`` stages later, the last repeated; in between linear,
     or with ``hold`` the row of the stage that time falls in (a piecewise-constant input)."""
-    n = len(rows) - 1
-    at = np.minimum(np.arange(n + 1) + shift, n)
-    low = np.floor(at + 1e-9).astype(int)
+    low, high, keep, frac = _shift_weights(len(rows) - 1, float(shift))
     if hold:
         return rows[low]
+    return keep * rows[low] + frac * rows[high]
+
+
+@functools.lru_cache(maxsize=64)
+def _shift_weights(n: int, shift: float):
+    """Rows before and after each shifted stage and their weights (the same few shifts
+    every cycle: worked out once)."""
+    at = np.minimum(np.arange(n + 1) + shift, n)
+    low = np.floor(at + 1e-9).astype(int)
     high = np.minimum(low + 1, n)
     frac = (at - low)[:, None]
-    return (1.0 - frac) * rows[low] + frac * rows[high]
+    for a in (low, high, frac):
+        a.flags.writeable = False   # shared between calls
+    keep = 1.0 - frac
+    keep.flags.writeable = False
+    return low, high, keep, frac
 
 
 def reference_rows(ref: Reference, N: int) -> np.ndarray:
