@@ -40,8 +40,8 @@ class CanVehicle:
         """One 10 ms cycle at ``now`` [s] (the bus side's clock): poll, step, send."""
         command = self.car.poll_command(now)
         self.engaged = self.engaged or command is not None
-        if self.hold and not self.engaged:
-            state = self.sim.state
+        if self.hold and not self.engaged:   # sensors still measure (noise): never frozen
+            state = self.sim.plant.measure()
             self.car.send_state(dataclasses.replace(state, stamp=now))
             return state
         if command is None:

@@ -233,6 +233,11 @@ class Plant:
         u[UP.STEER_TORQUE_MAX] = (st.driver_torque_max if human else st.torque_max) * st.ratio
         return u
 
+    def measure(self) -> VehicleState:
+        """A new measurement of the present state (fresh noise, no time step): what a car's
+        sensors send while it waits."""
+        return self._measure()
+
     def _measure(self) -> VehicleState:
         n = len(self._hist)
         row = self._hist[n - 1 - self._lag, np.arange(len(_COLUMNS))]
