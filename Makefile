@@ -6,6 +6,7 @@ DURATION ?= 0        # wall-clock seconds; 0: until the scenario ends (the simul
 SCENARIO ?=
 VEHICLE  ?=
 SEED     ?=
+VIEW     ?=
 RUN      ?= runs/$(shell date -u +%Y%m%d-%H%M%S)
 
 .PHONY: setup run test
@@ -14,7 +15,8 @@ setup:
 	@scripts/setup.sh
 
 run: setup
-	$(PY) scripts/run_stack.py --graph $(GRAPH) --duration $(DURATION) \
+	$(if $(VIEW),@echo "live view: Foxglove -> Open connection -> ws://localhost:8765; layout config/foxglove/drift_layout.json (docs/live_view.md)")
+	$(PY) scripts/run_stack.py --graph $(GRAPH)$(if $(VIEW),_view) --duration $(DURATION) \
 		--bag $(RUN)/bag --log-dir $(RUN)/logs $(if $(SCENARIO),--scenario $(SCENARIO)) \
 		$(if $(VEHICLE),--vehicle $(VEHICLE)) $(if $(SEED),--seed $(SEED)) $(ARGS)
 

@@ -20,6 +20,7 @@ setup(
         'console_scripts': [
             'recorder = drift_tools.nodes.recorder_node:main',
             'drift = drift_tools.operator:main',
+            'view = drift_tools.nodes.foxglove_node:main',
         ],
     },
 )
