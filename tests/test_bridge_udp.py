@@ -54,7 +54,9 @@ wait $car
     assert bridge['faults'] == {} and car['faults'] == {}, 'no frame lost its integrity'
     assert min(bridge['rx'].values()) > 0.6 * RUN_S / DT, bridge['rx']
     assert 'ACTIVE_FULL' in bridge['modes_seen'], bridge
-    assert bridge['mode'] == 'OFF' and bridge['drop_reason'] == 'BRAKE_PEDAL'
+    assert bridge['mode'] == 'OFF' and bridge['drop_reason'] == 'BRAKE_PEDAL', bridge['drops']
+    early = [d for d in bridge['drops'][:-1] if d[1] != 'STATE_INVALID']
+    assert not early, f'dropped before the brake for another reason than a stall: {early}'
     assert car['applied'] > 20, car
     assert abs(car['last_delta'] - (-0.2)) < 0.2 and car['last_torque'] > 400.0
     # Released within a few 10 ms cycles of the brake (two process schedules + one bridge cycle).
@@ -94,18 +96,23 @@ def _bridge(out):
     params = load_bridge_params(None, {'bus': {'interface': 'udp_multicast', 'channel': GROUP}})
     with can.Bus(interface='udp_multicast', channel=GROUP, port=PORT) as bus:
         gw = Gateway(bus, Codec.load(dbc_path(params)), params)
-        t0, seen = time.monotonic(), set()
+        t0, seen, drops = time.monotonic(), set(), []
         for k in range(int(RUN_S / DT)):
             _sleep_until(t0 + k * DT)
             now = time.monotonic() - t0
             gw.set_command(Command(now, -0.2, -0.5, 2500.0, Mode.FULL), now)
-            if now >= ARM_AT_S and gw.mode.name == 'OFF' and 'ARMED' not in seen \
-                    and 'ACTIVE_FULL' not in seen:
+            # armed from ARM_AT_S on, and again after a drop before the brake: a process stall
+            # longer than the 30 ms frame timeout (a loaded machine) is a correct STATE_INVALID
+            # drop, not the takeover under test
+            if ARM_AT_S <= now < BRAKE_AT_S - 0.2 and gw.mode.name == 'OFF':
                 gw.request_arm(now)
+            was = gw.mode.name
             gw.step(now)
+            if was != 'OFF' and gw.mode.name == 'OFF':
+                drops.append((round(now, 3), gw.modes.reason.name))
             seen.add(gw.mode.name)
         stats = gw.stats()
-    Path(out).write_text(json.dumps({**stats, 'modes_seen': sorted(seen)}))
+    Path(out).write_text(json.dumps({**stats, 'modes_seen': sorted(seen), 'drops': drops}))
 
 
 def _calm_state():

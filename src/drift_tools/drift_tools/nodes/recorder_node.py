@@ -58,6 +58,7 @@ class RecorderNode(Node):
         extra = self.declare_parameter('extra_topics', ['']).value
         period = self.declare_parameter('discovery_period', 1.0).value
         chunk_size = self.declare_parameter('chunk_size', DEFAULT_CHUNK_SIZE).value
+        compress = self.declare_parameter('compression', True).value   # zstd, chunk by chunk
         flush_period = self.declare_parameter('flush_period', 1.0).value
         health_period = self.declare_parameter('health_period', 1.0).value
         run_info_file = self.declare_parameter('run_info_file', '').value
@@ -71,7 +72,7 @@ class RecorderNode(Node):
         self._selector = TopicSelector(
             topics=tuple(resolve(t) for t in (*STACK_TOPICS, *extra) if t),
             namespaces=tuple(resolve(ns) for ns in namespaces if ns))
-        self._writer = BagWriter(bag_dir, chunk_size=chunk_size)
+        self._writer = BagWriter(bag_dir, chunk_size=chunk_size, compression=compress)
         if run_info_file:
             self._writer.add_metadata(RECORD_NAME, _load_run_info(run_info_file))
         self._disk = DiskWatch(self._writer.bag_dir, limits)
