@@ -81,7 +81,8 @@ def test_recorder_parameters_runtime_one_applies_others_refused(env, tmp_path):
     try:
         res = drift(env, 'param', 'list', '/recorder')
         assert res.returncode == 0 and 'disk_warn_free_mb' in res.stdout.split(), res.stderr
-        assert drift(env, 'param', 'get', '/recorder', 'chunk_size').stdout.strip() == '262144'
+        res = drift(env, 'param', 'get', '/recorder', 'chunk_size')
+        assert res.stdout.strip() == '262144', res.stderr
         res = drift(env, 'status', '--name', 'recorder')
         assert res.returncode == 0 and 'recorder: OK recording' in res.stdout, res.stdout
         # a runtime parameter: the warning threshold above any disk's free space -> WARN
@@ -96,7 +97,7 @@ def test_recorder_parameters_runtime_one_applies_others_refused(env, tmp_path):
         assert res.returncode == 1 and 'chunk_size is read at start only' in res.stderr
         res = drift(env, 'param', 'set', '/recorder', 'disk_stop_free_mb', '1.0e13')
         assert res.returncode == 1 and 'stop_free <= warn_free' in res.stderr, res.stderr
-        res = drift(env, 'param', 'get', '/planner', 'x')
+        res = drift(env, 'param', 'get', '/planner', 'x', '--timeout', '3')
         assert res.returncode == 2 and 'no node /planner' in res.stderr
         res = drift(env, 'param', 'get', '/recorder', 'no_such')
         assert res.returncode == 2 and "no parameter 'no_such'" in res.stderr

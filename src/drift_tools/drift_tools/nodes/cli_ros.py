@@ -204,11 +204,12 @@ def _param_value(value):
             T.PARAMETER_STRING_ARRAY: list(value.string_array_value)}.get(value.type, None)
 
 
-def _node_service(ros: Ros, node: str, suffix: str) -> str:
+def _node_service(ros: Ros, node: str, suffix: str, timeout: float) -> str:
+    """The name of ``node``'s parameter service, once discovery has shown it (~2.5 s)."""
     node = absolute(node)
     services = {}
     ok = ros.spin_until(lambda: services.update(dict(ros.node.get_service_names_and_types()))
-                        or f'{node}/{suffix}' in services, 3.0, 0.1)
+                        or f'{node}/{suffix}' in services, timeout, 0.1)
     if not ok:
         nodes = sorted('/' + n.lstrip('/') for n in ros.node.get_node_names())
         raise CliError(f'no node {node} (nodes: {nodes})', 2)
@@ -216,7 +217,7 @@ def _node_service(ros: Ros, node: str, suffix: str) -> str:
 
 
 def param_list(ros: Ros, args) -> int:
-    response = ros.call(_node_service(ros, args.node, 'list_parameters'),
+    response = ros.call(_node_service(ros, args.node, 'list_parameters', args.timeout),
                         'rcl_interfaces/srv/ListParameters', {}, args.timeout)
     for name in sorted(response.result.names):
         print(name)
@@ -225,7 +226,7 @@ def param_list(ros: Ros, args) -> int:
 
 def param_get(ros: Ros, args) -> int:
     from rcl_interfaces.msg import ParameterType
-    response = ros.call(_node_service(ros, args.node, 'get_parameters'),
+    response = ros.call(_node_service(ros, args.node, 'get_parameters', args.timeout),
                         'rcl_interfaces/srv/GetParameters', {'names': [args.name]}, args.timeout)
     value = response.values[0] if response.values else None
     if value is None or value.type == ParameterType.PARAMETER_NOT_SET:
@@ -252,7 +253,7 @@ def param_set(ros: Ros, args) -> int:
     value = parse_value(args.value)
     if isinstance(value, dict) or value == {}:
         raise CliError(f'value: a number, bool, string or list, not {args.value!r}', 2)
-    current = ros.call(_node_service(ros, args.node, 'get_parameters'),
+    current = ros.call(_node_service(ros, args.node, 'get_parameters', args.timeout),
                        'rcl_interfaces/srv/GetParameters', {'names': [args.name]}, args.timeout)
     kind = current.values[0].type if current.values else ParameterType.PARAMETER_NOT_SET
     if kind == ParameterType.PARAMETER_NOT_SET:
@@ -262,7 +263,7 @@ def param_set(ros: Ros, args) -> int:
         value = float(value)             # '5' for a double parameter means 5.0
     msg = Parameter(args.name, value=value).to_parameter_msg()
     from rcl_interfaces.srv import SetParameters
-    service = _node_service(ros, args.node, 'set_parameters')
+    service = _node_service(ros, args.node, 'set_parameters', args.timeout)
     request = SetParameters.Request(parameters=[msg])
     client = ros.node.create_client(SetParameters, service)
     if not ros.spin_until(client.service_is_ready, args.timeout, 0.1):
