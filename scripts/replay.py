@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 STATE_TOPIC = '/vehicle/state'
+STATE_REPEAT = 0.2   # [s] as the lock-step simulator offers its first state again
 COMMAND_TOPIC = '/drift/command'
 
 
@@ -100,11 +101,16 @@ def publish(args) -> int:
             stamp = _stamp_ns(raw) if args.lockstep and raw.topic == STATE_TOPIC else None
             if stamp is not None and (not recorded or stamp in recorded):
                 # as the lock-step simulator: no step before this state's command is in (the
-                # recorded run had one for it)
+                # recorded run had one for it); until the first command, the state is offered
+                # again every 0.2 s, for nodes that were still discovering us
                 deadline = time.monotonic() + args.step_timeout
+                offered = time.monotonic()
                 while not (stamp in answered if recorded else len(commands) > before) \
                         and time.monotonic() < deadline:
                     rclpy.spin_once(node, timeout_sec=0.005)
+                    if not commands and time.monotonic() - offered > STATE_REPEAT:
+                        offered = time.monotonic()
+                        publishers[raw.topic].publish(raw.data)
                 waited_out += not (stamp in answered if recorded else len(commands) > before)
             else:
                 rclpy.spin_once(node, timeout_sec=0.0)

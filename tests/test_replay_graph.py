@@ -57,7 +57,8 @@ def test_a_lockstep_bag_replayed_into_live_nodes_gives_the_recorded_commands(loc
     assert proc.returncode == 0, proc.stdout + proc.stderr
     report = json.loads((tmp_path / 'cmp.json').read_text())
     assert report['matched'] >= report['recorded'] - 1, (report, proc.stdout)
-    assert report['delta_max_abs_diff'] < 1e-6 and report['torque_max_abs_diff'] < 1e-3, report
+    assert report['delta_max_abs_diff'] < 1e-6 and report['torque_max_abs_diff'] < 1e-3, \
+        (report, proc.stdout)
     assert report['mode_mismatches'] == 0, report
     assert 'stale' not in logs[1], logs[1][-2000:]
 

@@ -64,9 +64,9 @@ def recording(tmp_path, node_env):
 def check_bag(bag):
     for backend in ('rosbags', 'mcap'):
         out = read_bag(bag, backend=backend)
-        # and the recorder's own health reports, once a second
-        assert set(out) - {'/diagnostics'} == {'/vehicle/state', '/drift/command', '/sim/debug'}, \
-            backend
+        # and the nodes' logs and the recorder's own health reports
+        assert set(out) - {'/diagnostics', '/rosout'} == {'/vehicle/state', '/drift/command',
+                                                           '/sim/debug'}, backend
         commands = [m.msg.drive_torque for m in out['/drift/command']]
         assert commands == [float(i) for i in range(N)], f'{backend}: reliable topic incomplete'
         assert [m.msg.data for m in out['/sim/debug']] == [float(i) for i in range(N)]

@@ -404,13 +404,19 @@ class LockstepTrigger:
 
     Once per ``period`` of state time: at the first state stamped at or after the due time, as
     soon as the reference computed for that state is in, or ``reference_wait`` (wall clock) later
-    with the latest reference, so a missing reference never stalls the loop.
+    with the latest reference, so a missing reference never stalls the loop. With
+    ``first_reference`` the first solve waits for a reference however long it takes: in sim time
+    the reference node may still be discovering us (~2.5 s), and the simulator, which waits for
+    the command, bounds that wait itself (its startup timeout) - the run then starts the same way
+    every time.
     """
 
     EPS = 1e-3   # stamp tolerance [s]
 
-    def __init__(self, period: float, reference_wait: float = 0.005):
+    def __init__(self, period: float, reference_wait: float = 0.005,
+                 first_reference: bool = False):
         self.period, self.reference_wait = period, reference_wait
+        self.first_reference = first_reference
         self.gate = PeriodGate(period)
         self._ref_stamp = -math.inf
         self._pending: tuple[float, float] | None = None   # (state stamp, wall time it came)
@@ -432,6 +438,8 @@ class LockstepTrigger:
 
     def poll(self, wall: float) -> bool:
         """True when a due state has waited ``reference_wait`` for its reference."""
+        if self.first_reference and self._ref_stamp == -math.inf:
+            return False
         return self._pending is not None and wall - self._pending[1] >= self.reference_wait
 
     def fired(self) -> float:

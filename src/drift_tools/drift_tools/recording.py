@@ -15,9 +15,10 @@ STACK_TOPICS = {
     'diagnostics': ('diagnostic_msgs/msg/DiagnosticArray', False),
     '/clock': ('rosgraph_msgs/msg/Clock', False),
     'sim/state': ('drift_msgs/msg/VehicleState', False),
+    '/rosout': ('rcl_interfaces/msg/Log', True),   # every node's log lines (transient local)
 }
 STACK_NAMESPACES = ('vehicle', 'drift', 'sim')
-NEVER = ('/rosout', '/parameter_events')
+NEVER = ('/parameter_events',)
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,8 @@ class NmpcNode(Node):
         # (deterministic); in real time at most a few ms, so a late reference never stalls us
         sim_time = self.get_parameter('use_sim_time').value
         wait = LOCKSTEP_REFERENCE_WAIT if sim_time else REALTIME_REFERENCE_WAIT
-        self._trigger = LockstepTrigger(params.Ts, wait) if trigger == 'state' else None
+        self._trigger = LockstepTrigger(params.Ts, wait, first_reference=sim_time) \
+            if trigger == 'state' else None
         # best effort matches every publisher; the deeper queue keeps each state of a step
         state_qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.BEST_EFFORT) \
             if trigger == 'state' else qos_profile_sensor_data

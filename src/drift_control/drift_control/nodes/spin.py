@@ -12,6 +12,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.node import Node
 
 from drift_control.nodes import stops
+from drift_control.nodes.logs import route_python_logging
 from drift_control.params import ParamError
 
 # a context shut down from another thread can make a callback fail just before rclpy.ok() turns
@@ -41,6 +42,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
     node, code = None, 0
     try:
         node = factory()
+        route_python_logging(node)   # the core modules' lines on /rosout, with severity and time
         finished = getattr(node, 'finished', None)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
