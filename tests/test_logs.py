@@ -1,6 +1,8 @@
 """Core modules' Python logging reaches the node's ROS logger (console, /rosout, the bag)."""
 import logging
 
+import pytest
+
 from drift_control.nodes.logs import RosLogHandler
 
 
@@ -10,6 +12,15 @@ class FakeRosLogger:
 
     def __getattr__(self, severity):
         return lambda text: self.lines.append((severity, text))
+
+
+@pytest.fixture(autouse=True)
+def logging_enabled():
+    """Another test's closed loop may have called logging.disable (sweep.run_seed does)."""
+    saved = logging.root.manager.disable
+    logging.disable(logging.NOTSET)
+    yield
+    logging.disable(saved)
 
 
 def test_records_go_to_the_ros_logger_at_their_severity():

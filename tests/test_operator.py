@@ -96,6 +96,9 @@ def test_recorder_parameters_runtime_one_applies_others_refused(env, tmp_path):
         res = drift(env, 'param', 'set', '/recorder', 'chunk_size', '5')
         assert res.returncode == 1 and 'chunk_size is read at start only' in res.stderr
         res = drift(env, 'param', 'set', '/recorder', 'disk_stop_free_mb', '1.0e13')
+        assert res.returncode == 1 and 'out of range' in res.stderr, res.stderr   # descriptor
+        assert drift(env, 'param', 'set', '/recorder', 'disk_warn_free_mb', '100').returncode == 0
+        res = drift(env, 'param', 'set', '/recorder', 'disk_stop_free_mb', '200')
         assert res.returncode == 1 and 'stop_free <= warn_free' in res.stderr, res.stderr
         res = drift(env, 'param', 'get', '/planner', 'x', '--timeout', '3')
         assert res.returncode == 2 and 'no node /planner' in res.stderr

@@ -5,6 +5,7 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterType
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -63,9 +64,13 @@ class RecorderNode(Node):
         health_period = self.declare_parameter('health_period', 1.0).value
         run_info_file = self.declare_parameter('run_info_file', '').value
         limits = DiskLimits(
-            warn_free=self.declare_parameter('disk_warn_free_mb', 2048.0).value * MIB,
-            warn_time_left=self.declare_parameter('disk_warn_minutes', 10.0).value * 60.0,
-            stop_free=self.declare_parameter('disk_stop_free_mb', 64.0).value * MIB)
+            warn_free=self._declare_live('disk_warn_free_mb', 2048.0,
+                                         'warn below this much free disk [MiB]') * MIB,
+            warn_time_left=self._declare_live('disk_warn_minutes', 10.0,
+                                              'warn when the free disk lasts less at the write '
+                                              'rate [min]') * 60.0,
+            stop_free=self._declare_live('disk_stop_free_mb', 64.0,
+                                         'close the bag below this much free disk [MiB]') * MIB)
         if not bag_dir:
             raise ParamError('recorder: parameter bag_dir is required')
         resolve = self.resolve_topic_name
@@ -107,6 +112,13 @@ class RecorderNode(Node):
             cls, topic, lambda data, t=topic, m=msgtype: self._on_message(t, m, data), qos,
             raw=True)
         self._subs[topic] = (sub, msgtype, qos)
+
+    def _declare_live(self, name: str, default: float, description: str) -> float:
+        """A parameter applied while recording (``drift param set``), with its descriptor."""
+        descriptor = ParameterDescriptor(
+            description=description + ' (applied live)', type=ParameterType.PARAMETER_DOUBLE,
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1e12)])
+        return self.declare_parameter(name, default, descriptor).value
 
     def _disk_setter(self, name: str):
         """``param set`` of one disk threshold: all three validated together, then used."""
