@@ -7,9 +7,7 @@ every stack node declares. Prints ``published <n>`` when it stops.
 import sys
 import time
 
-import rclpy
 from drift_msgs.msg import DriftCommand, VehicleState
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from std_msgs.msg import Float64
@@ -53,16 +51,14 @@ class Talker(Node):
         self.sent += 1
 
 
+    def close(self):
+        print(f'published {self.sent}', flush=True)
+
+
 def main(args=None):
-    rclpy.init(args=args)
-    node = Talker()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        print(f'published {node.sent}', flush=True)
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    # as every stack node: a stop signal ends the spin cleanly, also mid-callback
+    from drift_control.nodes.spin import run_node
+    return run_node(Talker, 'talker', args)
 
 
 if __name__ == '__main__':
