@@ -17,6 +17,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from drift_control import cli_args
 from drift_control.assembly import load_setup
 from drift_control.params import ParamError, config_dir, split_override, vehicle_file
 from drift_tools.launcher import Launcher
@@ -25,26 +26,6 @@ from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, S
                                load_stack, node_command, node_env, write_params_file)
 
 
-def _seconds(text: str) -> float:
-    """A duration >= 0 [s] for argparse (a negative or non-finite one is one line, exit 2)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not 0.0 <= value < float('inf'):
-        raise argparse.ArgumentTypeError(f'expected seconds >= 0, got {text!r}')
-    return value
-
-
-def _seed(text: str) -> int:
-    """A seed >= 0 for argparse."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'expected an integer >= 0, got {text!r}')
-    return value
 
 
 def node_overrides(items, nodes) -> dict:
@@ -73,10 +54,10 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--graph', default='sim', help='graph of stack.yaml (default: sim)')
     p.add_argument('--nodes', default='', help='comma-separated subset of the graph\'s nodes')
-    p.add_argument('--duration', type=_seconds, default=0.0,
+    p.add_argument('--duration', type=cli_args.seconds, default=0.0,
                    help='stop after this many wall-clock seconds (0: until Ctrl-C or the '
                         'scenario\'s end)')
-    p.add_argument('--sim-duration', type=_seconds, default=0.0,
+    p.add_argument('--sim-duration', type=cli_args.seconds, default=0.0,
                    help='simulated seconds the simulator runs before it ends the run '
                         '(default: the scenario\'s duration)')
     p.add_argument('--bag', type=Path, help='record to this rosbag2 (MCAP) directory')
@@ -85,7 +66,7 @@ def parse_args(argv=None):
     p.add_argument('--vehicle', default=None,
                    help='vehicle passed to every node (default: the scenario\'s, else '
                         'config/defaults.yaml\'s)')
-    p.add_argument('--seed', type=_seed, default=None,
+    p.add_argument('--seed', type=cli_args.seed, default=None,
                    help='simulator seed (friction field, noise, driver); default: the scenario\'s')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='scenario override for the simulator and the controller, as '

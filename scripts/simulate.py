@@ -20,18 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from drift_control import cli_args
 from drift_control.params import ParamError, config_dir
 from drift_sim.closed_loop import run_closed_loop
 
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f'expected an integer >= 0, got {text!r}')
-    return value
 
 
 def main(argv=None) -> int:
@@ -41,7 +33,7 @@ def main(argv=None) -> int:
                         help='override a scenario key (surface.mu=0.55, plant.lsd.locking=1)')
     parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: the scenario\'s, '
                         'else config/defaults.yaml\'s)')
-    parser.add_argument('--seed', type=_seed, default=None, help='a seed >= 0')
+    parser.add_argument('--seed', type=cli_args.seed, default=None, help='a seed >= 0')
     parser.add_argument('--controller', choices=('nmpc', 'feedforward'), default='nmpc')
     parser.add_argument('--plant', choices=('double_track', 'single_track'),
                         default='double_track', help='single_track: the controller model itself '
