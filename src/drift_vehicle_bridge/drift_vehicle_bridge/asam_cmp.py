@@ -1,15 +1,16 @@
 """FlexRay frames out of ASAM CMP captures (EtherType 0x99FE) in pcap or pcapng files; read only.
 
-A capture module (ASAM Capture Module Protocol) timestamps each bus frame it sees and sends it
-in Ethernet frames of EtherType 0x99FE; a logger stores those as pcap or pcapng. Layouts as
+A capture module (ASAM Capture Module Protocol) timestamps each bus frame it sees and sends it in
+Ethernet frames of EtherType 0x99FE; a logger stores those as pcap or pcapng. Layouts as
 Wireshark's dissector reads them, ``epan/dissectors/packet-asam-cmp.c`` (wireshark/wireshark at
-18a1eb82b483; the channel flag from a later revision of it; all fields big-endian): CMP header of 8 bytes (version, reserved, device ID u16, message type
-(0x01 data), stream ID, stream sequence counter u16), then data messages while 16 bytes remain,
-each a 16-byte header (timestamp u64 [ns], interface ID u32, common flags u8 (segmentation
-0x0C), payload type u8 (0x04 FlexRay), payload length u16) and its payload. FlexRay payload:
-flags u16 (0x0001 frame CRC error, 0x0002 header CRC error, 0x0004 null frame, 0x0200 channel
-B), reserved u16, header CRC u16, frame ID u16, cycle u8, frame CRC u24, reserved u8, data
-length u8, data. Captures whose modules predate the channel flag read as channel A.
+18a1eb82b483; the channel flag from a later revision of it; all fields big-endian): CMP header of 8
+bytes (version, reserved, device ID u16, message type (0x01 data), stream ID, stream sequence
+counter u16), then data messages while 16 bytes remain, each a 16-byte header (timestamp u64 [ns],
+interface ID u32, common flags u8 (segmentation 0x0C), payload type u8 (0x04 FlexRay), payload
+length u16) and its payload. FlexRay payload: flags u16 (0x0001 frame CRC error, 0x0002 header CRC
+error, 0x0004 null frame, 0x0200 channel B), reserved u16, header CRC u16, frame ID u16, cycle u8,
+frame CRC u24, reserved u8, data length u8, data. Captures whose modules predate the channel flag
+read as channel A.
 
 Frames with a CRC error, null frames and segmented messages are skipped and counted; so is
 everything that does not parse. A file that is neither pcap nor pcapng is a ParamError.
