@@ -10,6 +10,7 @@ from drift_vehicle_bridge.codec import CMD_STATUS, CMD_STEER, CMD_TORQUE, Codec
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.mode import BridgeMode, DropReason
 from drift_vehicle_bridge.params import load_bridge_params
+from drift_vehicle_bridge.transport import CanTransport, pdu_of
 from drift_vehicle_bridge.vehicle_side import CarSide, default_dbc
 
 DT = 0.01
@@ -50,9 +51,11 @@ class Rig:
         applied = self.car.poll_command(self.t)
         written = []
         while (msg := self.sniffer.recv(timeout=0.0)) is not None:
-            name = self.codec.name_of(msg.arbitration_id)
-            if name in (CMD_STATUS, CMD_STEER, CMD_TORQUE):
-                written.append((name, self.codec.decode(msg).values))
+            spec = self.codec.spec_of(pdu_of(msg).id)
+            if spec is not None and spec.name in (CMD_STATUS, CMD_STEER, CMD_TORQUE):
+                written.append((spec.name, self.codec.decode(pdu_of(msg)).values))
+                if spec.name == CMD_STATUS:
+                    self.last_status = pdu_of(msg).data
         return self.gw.mode, applied, written
 
     def arm_and_activate(self, command=DRIFT):
@@ -77,18 +80,21 @@ def rig(codec):
 
 
 def _requests(written):
-    return [name for name, _ in written if name in (CMD_STEER, CMD_TORQUE)]
+    """The request PDUs that ask for something (both go out every cycle, flagged or not)."""
+    return [name for name, values in written
+            if values.get('steer_request') or values.get('torque_request')]
 
 
-def test_unarmed_bridge_writes_only_the_off_heartbeat(rig):
+def test_unarmed_bridge_requests_nothing(rig):
     counters = []
     for _ in range(50):
         mode, applied, written = rig.cycle()
         assert mode == BridgeMode.OFF and applied is None
-        assert [n for n, _ in written] == [CMD_STATUS]
-        assert written[0][1]['bridge_mode'] == BridgeMode.OFF
-        counters.append(written[0][1]['AliveCounter'])
-    assert all((b - a) % 16 == 1 for a, b in zip(counters, counters[1:])), 'alive counter'
+        assert [n for n, _ in written] == [CMD_STEER, CMD_TORQUE, CMD_STATUS]
+        assert not _requests(written) and written[-1][1]['bridge_mode'] == BridgeMode.OFF
+        counters.append(rig.codec.protection(CMD_STATUS).counter(rig.last_status))
+    modulo = rig.codec.protection(CMD_STATUS).counter_modulo
+    assert all((b - a) % modulo == 1 for a, b in zip(counters, counters[1:])), 'E2E counter'
     assert rig.car.checker.faults == {} and rig.car.bridge_mode == BridgeMode.OFF
 
 
@@ -263,7 +269,8 @@ def test_non_finite_commands_are_dropped_and_count_as_lost_heartbeat(rig):
 def test_only_allow_listed_frames_are_ever_written(codec):
     rig = Rig(codec, tx_allow=['DS_CMD_TORQUE', 'DS_CMD_STATUS'])
     try:
-        rig.cycle(command=None)
+        for _ in range(3):   # the state PDUs E2E state machines: NODATA, INIT, INIT, VALID
+            rig.cycle(command=None)
         assert rig.gw.request_arm(rig.t)[0]
         for _ in range(10):
             mode, applied, written = rig.cycle()
@@ -280,9 +287,14 @@ def test_car_side_rejects_corrupted_command_frames(rig):
     # A forged steering frame with a bad CRC, injected on the bus beside the bridge.
     forged = rig.codec.encode(CMD_STEER, {'steer_request': 1, 'delta_req': 0.9,
                                           'delta_rate_req': 0.0}, counter=3)
-    forged.data = bytearray(forged.data)
-    forged.data[0] ^= 0x55
-    rig.sniffer.send(forged)
+    data = bytearray(forged.data)
+    data[0] ^= 0x55
+    CanTransport(rig.sniffer).send(replace(forged, data=bytes(data)))
     mode, applied, _ = rig.cycle()
-    assert applied is not None and applied.delta != pytest.approx(0.9)
+    assert applied is None, 'an E2E error invalidates the steering request in that cycle'
     assert rig.car.checker.faults['crc'] == 1
+    assert rig.car.checker.receivers[CMD_STEER].reason() == 'OK, INVALID'
+    recovered = [rig.cycle()[1] for _ in range(3)]
+    assert recovered[-1] is not None and recovered[-1].delta != pytest.approx(0.9), \
+        'the E2E state machine is VALID again once the error has left its window'
+    assert mode == BridgeMode.ACTIVE_FULL

@@ -124,15 +124,19 @@ def test_node_replays_a_candump_log_in_its_own_process(ros_env, tmp_path):
 
     log_file = tmp_path / 'drive.log'
 
-    class LogBus:   # CarSide only calls send(): stamp each frame with the drive's time
+    class LogLink:   # CarSide's transport: each PDU a frame of the log at the drive's time
         t = 0.0
 
-        def send(self, msg, timeout=None):
-            msg.timestamp = 1_700_000_000.0 + self.t
-            writer.on_message_received(msg)
+        def send(self, pdu):
+            writer.on_message_received(can.Message(
+                timestamp=1_700_000_000.0 + self.t, arbitration_id=pdu.id, data=pdu.data,
+                is_extended_id=False))
+
+        def flush(self):
+            pass
 
     with can.Logger(str(log_file)) as writer:
-        bus = LogBus()
+        bus = LogLink()
         car = CarSide(bus)
         for k in range(600):                      # 6 s of a car speeding up
             bus.t = 0.01 * k

@@ -19,15 +19,18 @@ def codec():
 
 def _record(path, codec, seconds=1.0):
     """A drive at 10 ms: speed ramps 5 -> 6 m/s; the DS_YAW frames stop after 0.5 s."""
-    class LogBus:
+    class LogLink:   # CarSide's transport: each PDU a frame of the log at the drive's time
         t = 0.0
 
-        def send(self, msg, timeout=None):
-            msg.timestamp = T0 + self.t
-            writer.on_message_received(msg)
+        def send(self, pdu):
+            writer.on_message_received(can.Message(timestamp=T0 + self.t, arbitration_id=pdu.id,
+                                                   data=pdu.data, is_extended_id=False))
+
+        def flush(self):
+            pass
 
     with can.Logger(str(path)) as writer:
-        bus = LogBus()
+        bus = LogLink()
         car = CarSide(bus, codec)
         for k in range(int(seconds / 0.01)):
             bus.t = 0.01 * k
@@ -50,7 +53,7 @@ def test_replay_paces_frames_and_the_gateway_never_writes_or_arms(tmp_path, code
             gateway.receive(msg, now)
         seen.append(gateway.step(now))
         if k == 30:
-            assert gateway.request_arm(now) == (False, 'arm refused: replay (no bus)')
+            assert gateway.request_arm(now) == (False, 'arm refused: replay (no link)')
     assert replay.finished
     assert sum(gateway.stats()['rx'].values()) == 100 * 9 - 49, 'every recorded frame once'
     assert gateway.stats()['faults'] == {} and gateway.stats()['tx'] == {}

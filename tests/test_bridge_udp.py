@@ -92,10 +92,10 @@ def _bridge(out):
     from drift_control.signals import Command, Mode
     from drift_vehicle_bridge.codec import Codec
     from drift_vehicle_bridge.gateway import Gateway
-    from drift_vehicle_bridge.params import dbc_path, load_bridge_params
+    from drift_vehicle_bridge.params import description_path, load_bridge_params
     params = load_bridge_params(None, {'bus': {'interface': 'udp_multicast', 'channel': GROUP}})
     with can.Bus(interface='udp_multicast', channel=GROUP, port=PORT) as bus:
-        gw = Gateway(bus, Codec.load(dbc_path(params)), params)
+        gw = Gateway(bus, Codec.load(description_path(params)), params)
         t0, seen, drops = time.monotonic(), set(), []
         for k in range(int(RUN_S / DT)):
             _sleep_until(t0 + k * DT)

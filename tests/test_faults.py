@@ -172,6 +172,7 @@ def test_the_bridge_drops_to_off_on_a_frozen_state(vp):
     import can
     from drift_vehicle_bridge.gateway import Gateway
     from drift_vehicle_bridge.params import load_bridge_params
+    from drift_vehicle_bridge.transport import CanTransport
     from drift_vehicle_bridge.vehicle_side import CarSide
     params = load_bridge_params(None, {'auto_arm': True})
     limits = load_nmpc_params().inputs.for_period(params.cycle_time, TS)
@@ -209,6 +210,7 @@ def test_the_bridge_drops_to_off_on_an_impossible_wheel_speed(vp):
     import can
     from drift_vehicle_bridge.gateway import Gateway
     from drift_vehicle_bridge.params import load_bridge_params
+    from drift_vehicle_bridge.transport import CanTransport
     from drift_vehicle_bridge.vehicle_side import CarSide
     params = load_bridge_params(None, {'auto_arm': True})
     calm = VehicleState(stamp=0.0, V=8.0, beta=-0.05, r=0.4, vx=8.0, vy=-0.4,
@@ -320,21 +322,21 @@ def _noisy(value, k):
     return value + 0.02 * math.sin(1.7 * k)
 
 
-class _LossyBus:
-    """A python-can bus that loses a share of the frames it sends (seeded)."""
+class _LossyLink:
+    """A transport that loses a share of the PDUs it sends (seeded)."""
 
-    def __init__(self, bus, loss, seed):
-        self._bus, self.loss, self.lost = bus, loss, 0
+    def __init__(self, link, loss, seed):
+        self._link, self.loss, self.lost = link, loss, 0
         self._rng = np.random.default_rng(seed)
 
-    def send(self, msg, timeout=None):
+    def send(self, pdu):
         if self._rng.random() < self.loss:
             self.lost += 1
             return
-        self._bus.send(msg, timeout=timeout)
+        self._link.send(pdu)
 
     def __getattr__(self, name):
-        return getattr(self._bus, name)
+        return getattr(self._link, name)
 
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
@@ -346,6 +348,7 @@ def test_twenty_percent_frame_loss_on_the_bus(vp, seed):
     from drift_vehicle_bridge.gateway import Gateway
     from drift_vehicle_bridge.mode import REQUIRED
     from drift_vehicle_bridge.params import load_bridge_params
+    from drift_vehicle_bridge.transport import CanTransport
     from drift_vehicle_bridge.vehicle_side import CarSide
     params = load_bridge_params(None, {'auto_arm': True})
     calm = VehicleState(stamp=0.0, V=8.0, beta=-0.05, r=0.4, vx=8.0, vy=-0.4,
@@ -353,9 +356,9 @@ def test_twenty_percent_frame_loss_on_the_bus(vp, seed):
     channel = f'faults_loss_{seed}'
     with can.Bus(channel, interface='virtual') as car_bus, \
             can.Bus(channel, interface='virtual') as our_bus:
-        car = CarSide(car_bus)
-        car.bus = _LossyBus(car_bus, 0.2, seed)
-        gw = Gateway(_LossyBus(our_bus, 0.2, seed + 100), car.codec, params, InputChecker(vp))
+        car = CarSide(_LossyLink(CanTransport(car_bus), 0.2, seed))
+        gw = Gateway(_LossyLink(CanTransport(our_bus), 0.2, seed + 100), car.codec, params,
+                     InputChecker(vp))
         active, dropped_at, applied_after_drop = 0, None, []
         for k in range(400):
             now = 0.01 * k
@@ -378,7 +381,7 @@ def test_twenty_percent_frame_loss_on_the_bus(vp, seed):
             if dropped_at is not None and k > dropped_at + 5:
                 applied_after_drop.append(applied)
     assert gw.been_active, 'the bridge never became active through the loss'
-    assert car.bus.lost > 0.15 * car.frames_sent
+    assert car.transport.lost > 0.15 * car.frames_sent
     assert all(a is None for a in applied_after_drop), 'the car applied requests after the drop'
 
 

@@ -1,9 +1,9 @@
-"""The DBC codec: CAN frames <-> VehicleState / Command signals, with E2E CRC8 and alive counter.
+"""The codec: PDUs <-> VehicleState / Command signals, for any bus description, E2E protected.
 
-No bus and no ROS here. The frame layout lives in ``config/can/drift_vehicle.dbc`` (cantools does
-all bit packing); this module adds the AUTOSAR E2E profile-1 style protection the DBC documents:
-byte 0 is a CRC8 SAE J1850 over the message's 16-bit ``E2E_DataID`` (low, high byte) and the
-remaining payload bytes, and a 4-bit ``AliveCounter`` counts transmissions.
+No bus and no ROS here. The PDUs, their bit layouts and their E2E profiles come from a
+``Description`` (a classic or CAN FD DBC, a FlexRay ARXML: ``description.load_description``);
+cantools packs the signals and ``e2e`` writes and checks the profile's header. The signal names
+are the contract (``STATE_SIGNALS``, ``COMMAND_SIGNALS``), whatever PDU carries them.
 """
 from __future__ import annotations
 
@@ -12,66 +12,64 @@ import os
 from dataclasses import dataclass
 from enum import Enum
 
-import can
-import cantools
-from crccheck.crc import Crc8SaeJ1850
-
 from drift_control.params import ParamError
 from drift_control.signals import Command, Mode, Validity, VehicleState
+from drift_vehicle_bridge.description import Description, PduSpec, load_description
+from drift_vehicle_bridge.e2e import Protection, protection
 from drift_vehicle_bridge.mode import BridgeMode
+from drift_vehicle_bridge.pdu import Pdu
 
-CRC_SIGNAL = 'CRC'
-COUNTER_SIGNAL = 'AliveCounter'
-COUNTER_MODULO = 16
-
-# State frames: message -> {DBC signal: VehicleState field}. Wheel speeds go to wheel_speeds[i].
-STATE_FRAMES: dict[str, dict[str, str]] = {
-    'DS_VELOCITY': {'vx': 'vx', 'vy': 'vy', 'V': 'V'},
-    'DS_YAW': {'r': 'r', 'beta': 'beta'},
-    'DS_ACCEL': {'ax': 'ax', 'ay': 'ay'},
-    'DS_WHEELS_FRONT': {'omega_FL': 'omega_FL', 'omega_FR': 'omega_FR'},
-    'DS_WHEELS_REAR': {'omega_RL': 'omega_RL', 'omega_RR': 'omega_RR'},
-    'DS_STEERING': {'delta': 'delta', 'steering_torque': 'steering_torque'},
-    'DS_POWERTRAIN': {'drive_torque': 'drive_torque', 'brake_pedal': 'brake_pedal'},
-    'DS_POSE_XY': {'x': 'x', 'y': 'y'},
-    'DS_POSE_YAW': {'yaw': 'yaw'},
-}
 WHEELS = ('omega_FL', 'omega_FR', 'omega_RL', 'omega_RR')   # order of VehicleState.wheel_speeds
 
-# Which fresh frames each validity bit needs.
-VALIDITY_FRAMES: dict[Validity, tuple[str, ...]] = {
-    Validity.V: ('DS_VELOCITY',),
-    Validity.VX_VY: ('DS_VELOCITY',),
-    Validity.BETA: ('DS_YAW',),
-    Validity.R: ('DS_YAW',),
-    Validity.AX_AY: ('DS_ACCEL',),
-    Validity.WHEEL_SPEEDS: ('DS_WHEELS_FRONT', 'DS_WHEELS_REAR'),
-    Validity.DELTA: ('DS_STEERING',),
-    Validity.STEERING_TORQUE: ('DS_STEERING',),
-    Validity.DRIVE_TORQUE: ('DS_POWERTRAIN',),
-    Validity.BRAKE_PEDAL: ('DS_POWERTRAIN',),
-    Validity.POSE: ('DS_POSE_XY', 'DS_POSE_YAW'),
+# State signal -> VehicleState field (wheel speeds go to wheel_speeds[i]).
+STATE_SIGNALS: dict[str, str] = {
+    'vx': 'vx', 'vy': 'vy', 'V': 'V', 'r': 'r', 'beta': 'beta', 'ax': 'ax', 'ay': 'ay',
+    **{w: w for w in WHEELS}, 'delta': 'delta', 'steering_torque': 'steering_torque',
+    'drive_torque': 'drive_torque', 'brake_pedal': 'brake_pedal', 'x': 'x', 'y': 'y',
+    'yaw': 'yaw'}
+
+# Which signals each validity bit needs: the bit is set while every PDU carrying one is valid.
+VALIDITY_SIGNALS: dict[Validity, tuple[str, ...]] = {
+    Validity.V: ('V',),
+    Validity.VX_VY: ('vx', 'vy'),
+    Validity.BETA: ('beta',),
+    Validity.R: ('r',),
+    Validity.AX_AY: ('ax', 'ay'),
+    Validity.WHEEL_SPEEDS: WHEELS,
+    Validity.DELTA: ('delta',),
+    Validity.STEERING_TORQUE: ('steering_torque',),
+    Validity.DRIVE_TORQUE: ('drive_torque',),
+    Validity.BRAKE_PEDAL: ('brake_pedal',),
+    Validity.POSE: ('x', 'y', 'yaw'),
 }
 
 CMD_STEER = 'DS_CMD_STEER'
 CMD_TORQUE = 'DS_CMD_TORQUE'
 CMD_STATUS = 'DS_CMD_STATUS'
-COMMAND_FRAMES = (CMD_STEER, CMD_TORQUE, CMD_STATUS)
+COMMAND_SIGNALS: dict[str, tuple[str, ...]] = {
+    CMD_STEER: ('steer_request', 'delta_req', 'delta_rate_req'),
+    CMD_TORQUE: ('torque_request', 'torque_req'),
+    CMD_STATUS: ('bridge_mode', 'drop_reason'),
+}
+COMMAND_FRAMES = tuple(COMMAND_SIGNALS)
+STATE_SENDER, COMMAND_SENDER = 'GATEWAY', 'DRIFT_STACK'
 
 
 class Fault(str, Enum):
-    """Why a received frame was rejected (the keys of the fault counters)."""
+    """Why a received PDU was rejected (the keys of the fault counters)."""
 
-    UNKNOWN_ID = 'unknown_id'           # not in the DBC, or extended / FD / remote / error frame
-    DLC = 'dlc'                         # payload length differs from the DBC
+    UNKNOWN_ID = 'unknown_id'           # not in the description (or an extended/remote/error frame)
+    FORMAT = 'format'                   # CAN FD frame for a classic message, or the reverse
+    LENGTH = 'length'                   # payload length (or the E2E length field) differs
     CRC = 'crc'                         # E2E CRC mismatch
-    COUNTER_REPEAT = 'counter_repeat'   # same alive counter as the last accepted frame
+    DATA_ID = 'data_id'                 # protected with another PDU's data ID (misrouted, masquerade)
+    COUNTER_REPEAT = 'counter_repeat'   # same E2E counter as the last accepted PDU
     COUNTER_JUMP = 'counter_jump'       # counter advanced by more than max_counter_delta
-    RANGE = 'range'                     # a signal outside its DBC [min|max]
+    RANGE = 'range'                     # a signal outside its [min|max]
 
 
 class FrameError(Exception):
-    """A received frame failed a check; ``fault`` says which."""
+    """A received PDU failed a check; ``fault`` says which."""
 
     def __init__(self, fault: Fault, detail: str):
         super().__init__(f'{fault.value}: {detail}')
@@ -80,7 +78,7 @@ class FrameError(Exception):
 
 @dataclass(frozen=True)
 class Frame:
-    """A decoded frame that passed the ID, DLC and CRC checks."""
+    """A decoded PDU that passed its checks: payload signal values (no E2E header fields)."""
 
     name: str
     counter: int
@@ -88,115 +86,182 @@ class Frame:
 
 
 class Codec:
-    """Encode and decode the DBC's frames with their E2E protection.
+    """Encode and decode a description's PDUs with their E2E protection.
 
     Parameters
     ----------
-    db : cantools.database.can.Database
-        The drift vehicle DBC; checked once here for the E2E layout every frame must have.
+    description : Description
+        The bus description; checked once here: unique ids and data IDs, E2E headers that no
+        payload signal overlaps, every state signal in exactly one GATEWAY PDU, the command PDUs.
     """
 
-    def __init__(self, db):
-        self.db = db
-        self._by_name = {m.name: m for m in db.messages}
-        self._by_id = {m.frame_id: m for m in db.messages}
-        self._data_id: dict[int, bytes] = {}
+    def __init__(self, description: Description):
+        self.description = description
+        src = description.source
+        self._specs: dict[str, PduSpec] = {}
+        self._by_id: dict[int, PduSpec] = {}
+        self._protection: dict[str, Protection] = {}
+        self._payload: dict[str, list] = {}     # name -> cantools signals outside the E2E header
+        self._header: dict[str, dict] = {}      # name -> {header signal: 0} for packing
         self._limits: dict[str, list[tuple[str, float, float]]] = {}
-        seen_ids = set()
-        for m in db.messages:
-            crc, counter = _signal(m, CRC_SIGNAL), _signal(m, COUNTER_SIGNAL)
-            if crc is None or crc.start != 0 or crc.length != 8 or counter is None \
-                    or counter.length != 4:
-                raise ParamError(f'dbc {m.name}: needs CRC at bits 0..7 and a 4-bit AliveCounter')
-            attr = m.dbc.attributes.get('E2E_DataID') if m.dbc else None
-            data_id = attr.value if attr else 0
-            if not 0 < data_id < 65536 or data_id in seen_ids:
-                raise ParamError(f'dbc {m.name}: E2E_DataID {data_id} missing or not unique')
-            seen_ids.add(data_id)
-            self._data_id[m.frame_id] = data_id.to_bytes(2, 'little')
+        e2e_ids = set()
+        for spec in description.pdus:
+            if spec.name in self._specs or spec.id in self._by_id:
+                raise ParamError(f'{src}: {spec.name}: name or id 0x{spec.id:x} not unique')
+            prot = protection(spec.e2e, spec.length)
+            key = (spec.e2e.profile, spec.e2e.data_id, spec.e2e.data_id_list)
+            if key in e2e_ids:
+                raise ParamError(f'{src}: {spec.name}: E2E data ID {spec.e2e.data_id} not unique')
+            e2e_ids.add(key)
+            header, payload = {}, []
+            for sig in spec.message.signals:
+                bits = signal_bits(sig)
+                if bits <= prot.header_bits:
+                    header[sig.name] = 0
+                elif bits & prot.header_bits:
+                    raise ParamError(f'{src}: {spec.name}.{sig.name} overlaps the '
+                                     f'{spec.e2e.profile} E2E header')
+                else:
+                    payload.append(sig)
+            self._specs[spec.name], self._by_id[spec.id] = spec, spec
+            self._protection[spec.name] = prot
+            self._payload[spec.name], self._header[spec.name] = payload, header
             # Half a step of slack: decoded values are raw * scale, exact to float rounding.
-            self._limits[m.name] = [
+            self._limits[spec.name] = [
                 (s.name, s.minimum - 0.5 * s.scale, s.maximum + 0.5 * s.scale)
-                for s in m.signals if s.minimum is not None and s.maximum is not None]
-        for name, sigs in STATE_FRAMES.items():
-            missing = set(sigs) - {s.name for s in self.message(name).signals}
+                for s in payload if s.minimum is not None and s.maximum is not None]
+        self.state_frames = self._state_frames()
+        self.validity_frames = {
+            bit: tuple(sorted({n for n, sigs in self.state_frames.items() if set(sigs) & set(need)}))
+            for bit, need in VALIDITY_SIGNALS.items()}
+        for name, sigs in COMMAND_SIGNALS.items():
+            missing = set(sigs) - {s.name for s in self.payload_signals(name)}
             if missing:
-                raise ParamError(f'dbc {name}: lacks signal(s) {sorted(missing)}')
-        for name in COMMAND_FRAMES:
-            self.message(name)
+                raise ParamError(f'{src}: {name} lacks signal(s) {sorted(missing)}')
+            if COMMAND_SENDER not in self.spec(name).senders:
+                raise ParamError(f'{src}: {name} must be sent by {COMMAND_SENDER}')
+
+    def _state_frames(self) -> dict[str, dict[str, str]]:
+        """PDU name -> {signal: VehicleState field}: each state signal in one GATEWAY PDU."""
+        carriers: dict[str, str] = {}
+        for spec in self._specs.values():
+            if STATE_SENDER not in spec.senders:
+                continue
+            for sig in self._payload[spec.name]:
+                if sig.name in STATE_SIGNALS:
+                    if sig.name in carriers:
+                        raise ParamError(f'{self.description.source}: state signal {sig.name} in '
+                                         f'both {carriers[sig.name]} and {spec.name}')
+                    carriers[sig.name] = spec.name
+        missing = sorted(set(STATE_SIGNALS) - set(carriers))
+        if missing:
+            raise ParamError(f'{self.description.source}: no {STATE_SENDER} PDU carries the '
+                             f'state signal(s) {missing}')
+        frames: dict[str, dict[str, str]] = {}
+        for sig, name in carriers.items():
+            frames.setdefault(name, {})[sig] = STATE_SIGNALS[sig]
+        return frames
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> 'Codec':
-        """Read a DBC file (cantools, strict: overlapping signals are an error)."""
+        """Read a ``.dbc`` or ``.arxml`` bus description."""
+        return cls(load_description(path))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self._specs)
+
+    def spec(self, name: str) -> PduSpec:
+        """The PDU called ``name``."""
         try:
-            db = cantools.database.load_file(str(path), database_format='dbc', strict=True)
-        except (OSError, cantools.database.UnsupportedDatabaseFormatError) as err:
-            raise ParamError(f'{path}: cannot read the DBC: {err}') from None
-        return cls(db)
+            return self._specs[name]
+        except KeyError:
+            raise ParamError(f'{self.description.source}: no PDU {name!r}') from None
 
     def message(self, name: str):
-        """The cantools message called ``name``."""
-        try:
-            return self._by_name[name]
-        except KeyError:
-            raise ParamError(f'dbc: no message {name!r}') from None
+        """The cantools message (bit layout) of the PDU called ``name``."""
+        return self.spec(name).message
 
-    def frame_id(self, name: str) -> int:
-        return self.message(name).frame_id
+    def protection(self, name: str) -> Protection:
+        return self._protection[name]
 
-    def name_of(self, frame_id: int) -> str | None:
-        m = self._by_id.get(frame_id)
-        return m.name if m else None
+    def payload_signals(self, name: str) -> list:
+        """The PDU's cantools signals outside its E2E header."""
+        return self._payload[name]
 
-    def crc(self, frame_id: int, data: bytes) -> int:
-        """E2E CRC8 (SAE J1850) over the data ID and every payload byte after the CRC byte."""
-        return Crc8SaeJ1850.calc(self._data_id[frame_id] + bytes(data[1:]))
+    def spec_of(self, pdu_id: int) -> PduSpec | None:
+        return self._by_id.get(pdu_id)
 
-    def encode(self, name: str, values: dict, counter: int, strict: bool = True) -> can.Message:
-        """One protected frame; ``strict=False`` lets out-of-range values through (tests only)."""
-        m = self.message(name)
-        raw = {**values, CRC_SIGNAL: 0, COUNTER_SIGNAL: counter % COUNTER_MODULO}
-        data = bytearray(m.encode(raw, scaling=True, strict=strict))
-        data[0] = self.crc(m.frame_id, data)
-        return can.Message(arbitration_id=m.frame_id, data=data, is_extended_id=False,
-                           is_fd=False)
+    def encode(self, name: str, values: dict, counter: int, strict: bool = True) -> Pdu:
+        """One protected PDU; ``strict=False`` lets out-of-range values through (tests only)."""
+        spec = self.spec(name)
+        data = bytearray(spec.message.encode({**values, **self._header[name]}, scaling=True,
+                                             strict=strict))
+        self._protection[name].protect(data, counter)
+        return Pdu(spec.id, bytes(data), fd=spec.fd)
 
-    def decode(self, msg: can.Message) -> Frame:
-        """Check ID, DLC and CRC and decode; raises FrameError (range: see ``check_range``)."""
-        m = self._by_id.get(msg.arbitration_id)
-        if m is None or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame \
-                or msg.is_fd:
-            raise FrameError(Fault.UNKNOWN_ID, f'id 0x{msg.arbitration_id:x}')
-        data = bytes(msg.data or b'')
-        if len(data) != m.length or msg.dlc != m.length:
-            raise FrameError(Fault.DLC, f'{m.name}: {len(data)} bytes, dlc {msg.dlc}')
-        if data[0] != self.crc(m.frame_id, data):
-            raise FrameError(Fault.CRC, m.name)
-        values = m.decode(data, decode_choices=False, scaling=True)
-        return Frame(m.name, int(values[COUNTER_SIGNAL]), values)
+    def lookup(self, pdu: Pdu) -> PduSpec:
+        """The description's PDU for a received one; FrameError for an unknown id or format."""
+        spec = self._by_id.get(pdu.id)
+        if spec is None:
+            raise FrameError(Fault.UNKNOWN_ID, f'id 0x{pdu.id:x}')
+        if pdu.fd is not None and spec.fd is not None and pdu.fd != spec.fd:
+            raise FrameError(Fault.FORMAT, f'{spec.name}: {"CAN FD" if pdu.fd else "classic"} '
+                                           f'frame')
+        return spec
+
+    def unpack(self, name: str, data: bytes) -> dict:
+        """Payload signal values of an intact PDU (E2E header fields left out)."""
+        values = self.spec(name).message.decode(data, decode_choices=False, scaling=True)
+        header = self._header[name]
+        return {k: v for k, v in values.items() if k not in header}
+
+    def decode(self, pdu: Pdu) -> Frame:
+        """Check id, format, length and E2E header (no receiver state) and decode."""
+        spec = self.lookup(pdu)
+        prot = self._protection[spec.name]
+        error = prot.verify(pdu.data)
+        if error is not None:
+            raise FrameError(Fault(error), spec.name)
+        return Frame(spec.name, prot.counter(pdu.data), self.unpack(spec.name, pdu.data))
 
     def check_range(self, frame: Frame) -> None:
-        """Raise FrameError(RANGE) if a signal lies outside its DBC [min|max]."""
+        """Raise FrameError(RANGE) if a signal lies outside its [min|max]."""
         for sig, lo, hi in self._limits[frame.name]:
             if not lo <= frame.values[sig] <= hi:
                 raise FrameError(Fault.RANGE, f'{frame.name}.{sig} = {frame.values[sig]}')
 
     def saturate(self, name: str, values: dict) -> dict:
-        """Clip values to the DBC range of their signals (a gateway saturates, it cannot fail)."""
-        sigs = {s.name: s for s in self.message(name).signals}
+        """Clip values to the range of their signals (a gateway saturates, it cannot fail)."""
+        sigs = {s.name: s for s in self._payload[name]}
         return {k: min(max(v, sigs[k].minimum), sigs[k].maximum) for k, v in values.items()}
 
+    def state_signals(self, state: VehicleState) -> dict[str, dict]:
+        """Signal values of every state PDU for ``state`` (PDU name -> {signal: value})."""
+        fields = {'vx': state.vx, 'vy': state.vy, 'V': state.V, 'r': state.r,
+                  'beta': state.beta, 'ax': state.ax, 'ay': state.ay, 'delta': state.delta,
+                  'steering_torque': state.steering_torque, 'drive_torque': state.drive_torque,
+                  'brake_pedal': int(bool(state.brake_pedal)), 'x': state.x, 'y': state.y,
+                  'yaw': math.atan2(math.sin(state.yaw), math.cos(state.yaw))}
+        fields.update(zip(WHEELS, state.wheel_speeds))
+        return {name: {sig: fields[sig] for sig in sigs}
+                for name, sigs in self.state_frames.items()}
 
-def state_signals(state: VehicleState) -> dict[str, dict]:
-    """Signal values of every state frame for ``state`` (message name -> {signal: value})."""
-    fields = {'vx': state.vx, 'vy': state.vy, 'V': state.V, 'r': state.r, 'beta': state.beta,
-              'ax': state.ax, 'ay': state.ay, 'delta': state.delta,
-              'steering_torque': state.steering_torque, 'drive_torque': state.drive_torque,
-              'brake_pedal': int(bool(state.brake_pedal)), 'x': state.x, 'y': state.y,
-              'yaw': math.atan2(math.sin(state.yaw), math.cos(state.yaw))}
-    fields.update(zip(WHEELS, state.wheel_speeds))
-    return {name: {sig: fields[f] for sig, f in sigs.items()}
-            for name, sigs in STATE_FRAMES.items()}
+    def frame_fields(self, frame: Frame) -> dict:
+        """The VehicleState field values a decoded state PDU carries."""
+        return {field: float(frame.values[sig])
+                for sig, field in self.state_frames[frame.name].items()}
+
+
+def signal_bits(signal) -> frozenset[int]:
+    """Bit positions (byte * 8 + bit, LSB 0) a cantools signal occupies."""
+    if signal.byte_order == 'little_endian':
+        return frozenset(range(signal.start, signal.start + signal.length))
+    bits, pos = set(), signal.start    # big-endian: from the MSB, sawtooth numbering
+    for _ in range(signal.length):
+        bits.add(pos)
+        pos = pos - 1 if pos % 8 else pos + 15
+    return frozenset(bits)
 
 
 def state_from_fields(fields: dict, stamp: float, validity: int) -> VehicleState:
@@ -211,11 +276,6 @@ def state_from_fields(fields: dict, stamp: float, validity: int) -> VehicleState
         yaw=get('yaw', 0.0), validity=int(validity))
 
 
-def frame_fields(frame: Frame) -> dict:
-    """The VehicleState field values a decoded state frame carries."""
-    return {field: float(frame.values[sig]) for sig, field in STATE_FRAMES[frame.name].items()}
-
-
 def steer_signals(cmd: Command) -> dict:
     return {'steer_request': 1, 'delta_req': cmd.delta, 'delta_rate_req': cmd.delta_rate}
 
@@ -226,7 +286,7 @@ def torque_signals(cmd: Command) -> dict:
 
 def command_from_signals(status: dict, steer: dict | None, torque: dict | None,
                          stamp: float) -> Command | None:
-    """What the car must apply: None unless the bridge is ACTIVE and its request frames are fresh.
+    """What the car must apply: None unless the bridge is ACTIVE and its request PDUs are valid.
 
     In ACTIVE_TORQUE_ONLY the steering stays with the driver: ``delta`` and ``delta_rate`` are 0
     and ``mode`` is ``Mode.TORQUE_ONLY``.
@@ -241,5 +301,6 @@ def command_from_signals(status: dict, steer: dict | None, torque: dict | None,
     return None
 
 
-def _signal(message, name):
-    return next((s for s in message.signals if s.name == name), None)
+__all__ = ['COMMAND_FRAMES', 'COMMAND_SIGNALS', 'Codec', 'Fault', 'Frame', 'FrameError',
+           'STATE_SIGNALS', 'VALIDITY_SIGNALS', 'WHEELS', 'command_from_signals', 'signal_bits',
+           'state_from_fields', 'steer_signals', 'torque_signals']

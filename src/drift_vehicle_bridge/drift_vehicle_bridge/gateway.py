@@ -1,4 +1,4 @@
-"""The gateway: owns the python-can bus and runs the 10 ms cycle (receive, decide, write)."""
+"""The gateway: runs the 10 ms cycle on a transport (receive, decide, write)."""
 from __future__ import annotations
 
 import logging
@@ -15,29 +15,36 @@ from drift_vehicle_bridge.codec import (CMD_STATUS, CMD_STEER, CMD_TORQUE, Codec
 from drift_vehicle_bridge.limits import CommandLimiter
 from drift_vehicle_bridge.mode import BridgeMode, ModeManager
 from drift_vehicle_bridge.monitor import StateMonitor
-from drift_vehicle_bridge.params import BridgeParams, dbc_path
+from drift_vehicle_bridge.params import BridgeParams, description_path
+from drift_vehicle_bridge.pdu import Pdu
+from drift_vehicle_bridge.transport import as_transport, open_transport
 
 log = logging.getLogger(__name__)
 
-MAX_FRAMES_PER_CYCLE = 1000    # a babbling bus must not starve the cycle
+MAX_FRAMES_PER_CYCLE = 1000    # a babbling bus must not starve the cycle [PDUs]
+NO_STEER = {'steer_request': 0, 'delta_req': 0.0, 'delta_rate_req': 0.0}
+NO_TORQUE = {'torque_request': 0, 'torque_req': 0.0}
 
 
 class Gateway:
     """One bridge cycle per ``step(now)``; what is written depends on the mode.
 
-    Every cycle writes DS_CMD_STATUS (heartbeat, mode, drop reason): in OFF and ARMED that is the
-    explicit "no request". DS_CMD_TORQUE is written only in ACTIVE_*, DS_CMD_STEER only in
-    ACTIVE_FULL, both after the limiter. Only messages in ``params.tx_allow`` are ever written.
-    With ``bus=None`` (log replay) nothing is written and arming is refused. With
+    Every cycle writes DS_CMD_STATUS (heartbeat, mode, drop reason) and both request PDUs, so
+    that the car's E2E state machines stay VALID and a request applies in the cycle it starts:
+    ``torque_request`` is set only in ACTIVE_*, ``steer_request`` only in ACTIVE_FULL, their
+    values after the limiter; in OFF and ARMED nothing is requested. Only PDUs in
+    ``params.tx_allow`` are ever written (a blocked one is tried, and counted, only to request).
+    With ``link=None`` (log replay) nothing is written and arming is refused. With
     ``params.auto_arm`` (simulated buses only) the gateway requests arming itself each cycle
     while OFF until it has once been ACTIVE; after that a drop to OFF is latched as usual.
 
     Parameters
     ----------
-    bus : can.BusABC or None
-        Any python-can bus; the gateway never closes a bus it was given.
+    link : transport, can.BusABC or None
+        A transport (``transport.py``, ``soad.py``) or any python-can bus; the gateway never
+        shuts down a link it was given.
     codec : Codec
-        The DBC codec.
+        The bus description's codec.
     params : BridgeParams
         Validated bridge parameters.
     checker : drift_control.plausibility.InputChecker, optional
@@ -45,9 +52,9 @@ class Gateway:
         steering lock) and the frozen-sensor check: an implausible state is an invalid one.
     """
 
-    def __init__(self, bus: can.BusABC | None, codec: Codec, params: BridgeParams,
-                 checker=None):
-        self.bus, self.codec, self.params = bus, codec, params
+    def __init__(self, link, codec: Codec, params: BridgeParams, checker=None):
+        self.transport = None if link is None else as_transport(link)
+        self.codec, self.params = codec, params
         self._allow = _check_tx_allow(codec, params)
         self.monitor = StateMonitor(codec, params.monitor)
         self.modes = ModeManager(params.mode, checker)
@@ -62,17 +69,17 @@ class Gateway:
 
     @classmethod
     def open(cls, params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> 'Gateway':
-        """Open ``can.Bus(**params.bus)`` and load the DBC named in ``params``."""
-        codec = Codec.load(dbc_path(params, cfg_dir))
-        return cls(can.Bus(**params.bus.kwargs()), codec, params)
+        """Open the transport of ``params`` and load the bus description it names."""
+        codec = Codec.load(description_path(params, cfg_dir))
+        return cls(open_transport(params), codec, params)
 
     @property
     def mode(self) -> BridgeMode:
         return self.modes.mode
 
-    def receive(self, msg: can.Message, now: float) -> bool:
-        """Feed one frame (from the bus or a log) received at ``now`` [s]."""
-        return self.monitor.receive(msg, now)
+    def receive(self, pdu: Pdu, now: float) -> bool:
+        """Feed one PDU (from the link or a log) received at ``now`` [s]."""
+        return self.monitor.receive(pdu, now)
 
     def set_command(self, cmd: Command, now: float) -> bool:
         """The controller's latest command, arrived at ``now`` [s]; a non-finite one is dropped."""
@@ -84,16 +91,17 @@ class Gateway:
 
     def request_arm(self, now: float) -> tuple[bool, str]:
         """Explicit arm request (operator); returns (armed, why)."""
-        if self.bus is None:
-            return False, 'arm refused: replay (no bus)'
+        if self.transport is None:
+            return False, 'arm refused: replay (no link)'
         return self.modes.request_arm(self.monitor.state(now), now)
 
     def disarm(self) -> None:
         self.modes.disarm()
 
     def step(self, now: float) -> VehicleState | None:
-        """One cycle at ``now`` [s]: drain the bus, update state and mode, write the frames."""
+        """One cycle at ``now`` [s]: drain the link, update state and mode, write the PDUs."""
         self._drain(now)
+        self.monitor.tick(now)
         self.state = self.monitor.state(now)
         if self.params.auto_arm and self.mode == BridgeMode.OFF and not self.been_active:
             self.request_arm(now)    # retried while refused: arms once the state allows it
@@ -106,7 +114,7 @@ class Gateway:
         return self.state
 
     def shutdown(self) -> None:
-        """Drop to OFF and say so on the bus once more (the caller closes the bus)."""
+        """Drop to OFF and say so on the link once more (the caller shuts the link down)."""
         if self.mode != BridgeMode.OFF:
             self.modes.disarm()
             self._transmit(self.mode)
@@ -115,36 +123,44 @@ class Gateway:
         """Counters for diagnostics (totals since start)."""
         checker = self.monitor.checker
         return {'mode': self.mode.name, 'drop_reason': self.modes.reason.name,
-                'implausible': self.modes.implausible or '',
+                'drops': dict(self.modes.drops), 'implausible': self.modes.implausible or '',
                 'validity': self.state.validity if self.state else 0,
                 'rx': dict(checker.accepted), 'faults': dict(checker.faults),
-                'foreign': checker.foreign, 'tx': dict(self.sent), 'errors': dict(self.errors)}
+                'e2e': checker.states(), 'foreign': checker.foreign, 'tx': dict(self.sent),
+                'errors': dict(self.errors)}
 
     def _drain(self, now: float) -> None:
-        if self.bus is None:
+        if self.transport is None:
             return
         for _ in range(MAX_FRAMES_PER_CYCLE):
             try:
-                msg = self.bus.recv(timeout=0.0)
+                pdu = self.transport.recv(timeout=0.0)
             except (can.CanError, OSError, ValueError) as err:   # a bad datagram, a bus-off
                 self.errors['bus_error'] += 1
                 log.warning('receive failed: %s', err)
                 return
-            if msg is None:
+            if pdu is None:
                 return
-            self.monitor.receive(msg, now)
+            self.monitor.receive(pdu, now)
 
     def _transmit(self, mode: BridgeMode) -> None:
-        if self.bus is None:
+        if self.transport is None:
             return
-        if mode.active:
-            cmd = self.limiter.apply(self._command)
-            if mode == BridgeMode.ACTIVE_FULL:
-                self._write(CMD_STEER, steer_signals(cmd))
-            else:   # steering stays with the driver: track it for a smooth switch to FULL
+        cmd = self.limiter.apply(self._command) if mode.active else None
+        if mode == BridgeMode.ACTIVE_FULL:
+            self._write(CMD_STEER, steer_signals(cmd))
+        else:
+            if mode.active:   # steering stays with the driver: track it for a smooth switch
                 self.limiter.delta = self.state.delta
-            self._write(CMD_TORQUE, torque_signals(cmd))
+            if CMD_STEER in self._allow:
+                self._write(CMD_STEER, NO_STEER)
+        self._write(CMD_TORQUE, torque_signals(cmd) if mode.active else NO_TORQUE)
         self._write(CMD_STATUS, {'bridge_mode': int(mode), 'drop_reason': int(self.modes.reason)})
+        try:
+            self.transport.flush()
+        except (can.CanError, OSError) as err:
+            self.errors['tx_error'] += 1
+            log.warning('flush failed: %s', err)
 
     def _write(self, name: str, values: dict) -> None:
         if name not in self._allow:
@@ -152,7 +168,7 @@ class Gateway:
             log.error('refusing to write %s: not in tx_allow', name)
             return
         try:
-            self.bus.send(self.codec.encode(name, values, self._counters[name]), timeout=0.005)
+            self.transport.send(self.codec.encode(name, values, self._counters[name]))
         except (can.CanError, OSError) as err:
             self.errors['tx_error'] += 1
             log.warning('send %s failed: %s', name, err)
@@ -162,12 +178,13 @@ class Gateway:
 
 
 def _check_tx_allow(codec: Codec, params: BridgeParams) -> frozenset[str]:
-    """The allow-list must name our own messages; the limits must fit their DBC ranges."""
+    """The allow-list must name our own PDUs; the limits must fit their signals' ranges."""
     for name in params.tx_allow:
         try:
-            senders = codec.message(name).senders
+            senders = codec.spec(name).senders
         except ParamError:
-            raise ParamError(f'bridge.tx_allow: {name!r} is not a message of the DBC') from None
+            raise ParamError(f'bridge.tx_allow: {name!r} is not a PDU of '
+                             f'{codec.description.source}') from None
         if 'DRIFT_STACK' not in senders:
             raise ParamError(f'bridge.tx_allow: {name!r} is sent by {senders}, not DRIFT_STACK')
     lim = params.limits
@@ -179,7 +196,7 @@ def _check_tx_allow(codec: Codec, params: BridgeParams) -> frozenset[str]:
     for key, values, signal in checks:
         s = sig[signal]
         if not all(s.minimum <= v <= s.maximum for v in values):
-            raise ParamError(f'bridge.limits.{key}: {values[0]} outside the DBC range of '
+            raise ParamError(f'bridge.limits.{key}: {values[0]} outside the range of '
                              f'{signal} [{s.minimum}, {s.maximum}]')
     return frozenset(params.tx_allow)
 

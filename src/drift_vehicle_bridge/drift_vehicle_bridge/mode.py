@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from enum import IntEnum
 
 from drift_control.signals import Command, Mode, Validity, VehicleState
@@ -56,6 +57,7 @@ class ModeManager:
         self.mode = BridgeMode.OFF
         self.reason = DropReason.NONE
         self.implausible: str | None = None   # why the last state was not believed
+        self.drops: Counter = Counter()       # 'FROM_MODE/REASON' -> drops to OFF since start
         self._armed_at = 0.0
 
     def hazard(self, state: VehicleState | None, envelope: Envelope,
@@ -127,6 +129,7 @@ class ModeManager:
     def _drop(self, reason: DropReason) -> BridgeMode:
         log.warning('%s -> OFF: %s%s', self.mode.name, reason.name,
                     f' ({self.implausible})' if self.implausible else '')
+        self.drops[f'{self.mode.name}/{reason.name}'] += 1
         self.mode, self.reason = BridgeMode.OFF, reason
         return self.mode
 

@@ -1,16 +1,19 @@
 """Bridge parameters: ``config/bridge.yaml`` loaded into frozen, validated dataclasses."""
 from __future__ import annotations
 
+import ipaddress
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from drift_control.params import (ParamError, config_dir, from_dict, load_vehicle, load_yaml,
                                   merge, require)
+from drift_vehicle_bridge.e2e import SMConfig
 
 
 # python-can interfaces that cannot reach a vehicle: the only ones auto_arm is allowed on.
 SIMULATED_INTERFACES = ('virtual', 'udp_multicast')
+TRANSPORTS = ('can', 'udp')
 
 
 @dataclass(frozen=True)
@@ -20,7 +23,7 @@ class BusParams:
     interface: str              # python-can backend name
     channel: str                # 'can0', 'PCAN_USBBUS1', a virtual channel name, a multicast group
     bitrate: int = 500000       # [bit/s]; ignored by virtual and udp_multicast
-    fd: bool = False            # CAN FD; the DBC's frames are classic 8-byte frames either way
+    fd: bool = False            # CAN FD frames (a CAN FD description needs it)
 
     def __post_init__(self):
         require(bool(self.interface), 'bridge.bus.interface', 'must not be empty')
@@ -33,12 +36,30 @@ class BusParams:
 
 
 @dataclass(frozen=True)
-class MonitorParams:
-    """Receive checks: E2E counter tolerance and per-frame timeouts."""
+class UdpParams:
+    """PDUs over UDP with the Socket Adaptor header, the way an Ethernet gateway forwards them."""
 
-    frame_timeout: float = 0.03         # a state frame older than this is stale [s] (3 cycles)
-    max_counter_delta: int = 2          # accepted alive-counter step; 2 tolerates one lost frame
-    timeouts: dict[str, float] = field(default_factory=dict)   # per-frame overrides [s]
+    local: str = '127.0.0.1:30501'      # host:port the bridge receives on
+    remote: str = '127.0.0.1:30502'     # the gateway's host:port
+
+    def __post_init__(self):
+        from drift_vehicle_bridge.soad import parse_endpoint
+        parse_endpoint(self.local, 'bridge.udp.local')
+        parse_endpoint(self.remote, 'bridge.udp.remote')
+
+    def swapped(self) -> 'UdpParams':
+        """The gateway's end of the same link (the simulated car)."""
+        return UdpParams(local=self.remote, remote=self.local)
+
+
+@dataclass(frozen=True)
+class MonitorParams:
+    """Receive checks: E2E counter tolerance, state machine and per-PDU timeouts."""
+
+    frame_timeout: float = 0.03         # a state PDU older than this is stale [s] (3 cycles)
+    max_counter_delta: int = 2          # accepted counter step; 2 tolerates one lost PDU
+    timeouts: dict[str, float] = field(default_factory=dict)   # per-PDU overrides [s]
+    e2e: SMConfig = SMConfig()          # AUTOSAR E2E state machine of every PDU
 
     def __post_init__(self):
         require(self.frame_timeout > 0, 'bridge.monitor.frame_timeout', 'must be positive')
@@ -106,24 +127,48 @@ class LimitParams:
 
 @dataclass(frozen=True)
 class BridgeParams:
-    """Everything the bridge core needs; ``dbc`` is relative to the config directory."""
+    """Everything the bridge core needs; ``description`` is relative to the config directory."""
 
-    dbc: str
+    description: str                    # bus description: a DBC (CAN, CAN FD) or a FlexRay ARXML
     cycle_time: float                   # [s]
+    transport: str                      # 'can' (python-can ``bus``) or 'udp' (``udp``)
     bus: BusParams
     monitor: MonitorParams
     mode: ModeParams
     limits: LimitParams
-    tx_allow: tuple[str, ...]           # the only message names ever written
+    tx_allow: tuple[str, ...]           # the only PDU names ever written
+    udp: UdpParams = UdpParams()
     auto_arm: bool = False              # simulation only: arm without an operator request
 
     def __post_init__(self):
         require(0 < self.cycle_time <= 0.1, 'bridge.cycle_time', 'must be in (0, 0.1] s')
-        require(len(self.tx_allow) > 0, 'bridge.tx_allow', 'must name at least one message')
+        require(self.transport in TRANSPORTS, 'bridge.transport',
+                f'must be one of {TRANSPORTS}, got {self.transport!r}')
+        require(len(self.tx_allow) > 0, 'bridge.tx_allow', 'must name at least one PDU')
         # On a car, arming is the safety driver's decision; never a configuration default.
-        require(not self.auto_arm or self.bus.interface in SIMULATED_INTERFACES,
-                'bridge.auto_arm', f'only on a simulated bus {SIMULATED_INTERFACES}, '
-                f'not on {self.bus.interface!r}')
+        require(not self.auto_arm or self.simulated(), 'bridge.auto_arm',
+                f'only on a simulated link (CAN {SIMULATED_INTERFACES} or UDP on loopback), '
+                f'not on {self.link()}')
+
+    def simulated(self) -> bool:
+        """True when the link cannot reach a vehicle: a simulated CAN bus, or UDP on loopback."""
+        if self.transport == 'can':
+            return self.bus.interface in SIMULATED_INTERFACES
+        from drift_vehicle_bridge.soad import parse_endpoint
+        return all(_loopback(parse_endpoint(e)[0]) for e in (self.udp.local, self.udp.remote))
+
+    def link(self) -> str:
+        """The link in words, for logs: ``udp_multicast:239.74.163.10``, ``udp 127.0.0.1:30502``."""
+        if self.transport == 'can':
+            return f'{self.bus.interface}:{self.bus.channel}'
+        return f'udp {self.udp.local} -> {self.udp.remote}'
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == 'localhost'
 
 
 def load_bridge_params(cfg_dir: str | os.PathLike | None = None,
@@ -159,12 +204,12 @@ def vehicle_limits(lim, tighter: dict) -> dict:
     return own
 
 
-def dbc_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> Path:
-    """Absolute path of the DBC named in the parameters."""
-    path = Path(params.dbc)
+def description_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> Path:
+    """Absolute path of the bus description named in the parameters."""
+    path = Path(params.description)
     return path if path.is_absolute() else (Path(cfg_dir) if cfg_dir else config_dir()) / path
 
 
 __all__ = ['BridgeParams', 'BusParams', 'Envelope', 'LimitParams', 'ModeParams',
-           'MonitorParams', 'ParamError', 'SIMULATED_INTERFACES', 'dbc_path',
+           'MonitorParams', 'ParamError', 'SIMULATED_INTERFACES', 'UdpParams', 'description_path',
            'load_bridge_params']

@@ -6,6 +6,9 @@ from collections.abc import Iterator
 
 import can
 
+from drift_vehicle_bridge.pdu import Pdu
+from drift_vehicle_bridge.transport import pdu_of
+
 
 class LogReplay:
     """Hands out the frames of a python-can log as their recorded time comes due.
@@ -27,14 +30,14 @@ class LogReplay:
         self._t0: float | None = None
         self.finished = self._pending is None
 
-    def due(self, now: float) -> list[can.Message]:
+    def due(self, now: float) -> list[Pdu]:
         """Every frame recorded up to ``now`` [s] since the first call (replay clock)."""
         if self._t0 is None:
             self._t0 = now
         horizon = self._t0_log + (now - self._t0) * self._speed
         out = []
         while self._pending is not None and self._pending.timestamp <= horizon:
-            out.append(self._pending)
+            out.append(pdu_of(self._pending))
             self._pending = next(self._frames, None)
         if self._pending is None and not self.finished:
             self.finished = True

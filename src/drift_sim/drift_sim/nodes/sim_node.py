@@ -15,7 +15,7 @@ from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import Pacer
-from drift_control.params import ParamError, config_dir
+from drift_control.params import ParamError, config_dir, parse_overrides
 from drift_sim.lockstep import LockstepGate
 from drift_sim.scenario import load_scenario
 from drift_sim.simulator import Simulator
@@ -27,8 +27,9 @@ STATE_REPEAT = 0.2   # lock-step: offer the first state again this often until a
 class SimNode(Node):
     """Steps the simulator in real time, or in lock-step with the controller on sim time.
 
-    ``io:=can`` puts the plant behind the car's end of the CAN bus instead (for the bridge in
-    the loop, real time): only the ground truth goes to ROS.
+    ``io:=link`` puts the plant behind the car's end of the bridge's link instead (CAN, CAN FD
+    or PDUs over UDP, as ``link_set`` makes of config/bridge.yaml: the bridge in the loop, real
+    time): only the ground truth goes to ROS.
     """
 
     def __init__(self):
@@ -53,8 +54,8 @@ class SimNode(Node):
         # of a run_stack --bag run, which discovers topics by polling and may join late)
         self._wait_recorder = self.declare_parameter('wait_recorder', False).value
         io = self.declare_parameter('io', 'ros').value
-        can_interface = self.declare_parameter('can_interface', 'virtual').value
-        can_channel = self.declare_parameter('can_channel', 'drift').value
+        # the bridge.yaml overrides naming the link, the same ones the bridge node gets
+        link_set = [o for o in self.declare_parameter('link_set', ['']).value if o]
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
         for name, value in (('duration', duration), ('command_period', period),
                             ('lockstep_timeout', timeout), ('startup_timeout', startup),
@@ -79,14 +80,16 @@ class SimNode(Node):
         self._reported = 0
         self._can = None
         self.finished = Future()   # done when the scenario's time is up: the run ends there
-        if io == 'can':
+        if io == 'link':
             from drift_sim.can_vehicle import CanVehicle
+            from drift_vehicle_bridge.params import load_bridge_params
             from drift_vehicle_bridge.vehicle_side import CarSide
             self._mode = 'realtime'
-            self._can = CanVehicle(self._sim, CarSide.open(interface=can_interface,
-                                                           channel=can_channel), can_hold)
+            link = load_bridge_params(cfg, parse_overrides(link_set, 'sim.link_set'),
+                                      loaded.scenario.vehicle)
+            self._can = CanVehicle(self._sim, CarSide.open(link, cfg), can_hold)
         elif io != 'ros':
-            raise ParamError(f"sim: io must be 'ros' or 'can', got {io!r}")
+            raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
@@ -111,9 +114,9 @@ class SimNode(Node):
                                f'{self._sim.plant.seed}, plant JIT {self._sim.plant.model.jit}')
 
     def close(self) -> None:
-        """Release the CAN bus of the ``io: can`` mode."""
+        """Release the link of the ``io: link`` mode."""
         if self._can is not None:
-            self._can.car.bus.shutdown()
+            self._can.car.transport.shutdown()
 
     def _on_recorder_matched(self, msg):
         try:

@@ -1,9 +1,8 @@
-"""The vehicle bridge node: CAN gateway <-> vehicle/state, drift/command, diagnostics."""
+"""The vehicle bridge node: the car's link (CAN, CAN FD, PDUs over UDP) <-> vehicle/state, drift/command."""
 import sys
 import time
 from pathlib import Path
 
-import can
 from diagnostic_msgs.msg import DiagnosticArray
 from drift_msgs.msg import DriftCommand, VehicleState
 from rclpy.node import Node
@@ -19,9 +18,10 @@ from drift_control.scenario import load_scenario_spec
 from drift_vehicle_bridge.codec import Codec
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.nodes import convert
-from drift_vehicle_bridge.params import dbc_path, load_bridge_params
+from drift_vehicle_bridge.params import description_path, load_bridge_params
 from drift_vehicle_bridge.peers import HeartbeatWatch
 from drift_vehicle_bridge.replay import LogReplay
+from drift_vehicle_bridge.transport import open_transport
 
 
 class BridgeNode(Node):
@@ -40,19 +40,21 @@ class BridgeNode(Node):
         bus = {k: v for k, v in bus.items() if v}    # '' / 0: keep config/bridge.yaml's
         log_file = self.declare_parameter('log_file', '').value
         auto_arm = self.declare_parameter('auto_arm', False).value   # virtual/udp_multicast only
-        overrides = parse_overrides(self.declare_parameter('set', ['']).value, 'bridge')
+        # link_set: the overrides naming the link (shared with a simulated car), then set
+        link_set = [o for o in self.declare_parameter('link_set', ['']).value if o]
+        overrides = parse_overrides(link_set + [o for o in self.declare_parameter(
+            'set', ['']).value if o], 'bridge')
         overrides.setdefault('bus', {}).update(bus)
         if auto_arm:
             overrides['auto_arm'] = True
         params = load_bridge_params(cfg, overrides, vehicle or None)
-        codec = Codec.load(dbc_path(params, cfg))
+        codec = Codec.load(description_path(params, cfg))
         nmpc = load_nmpc_params(Path(cfg) / 'nmpc.yaml')   # the controller's input limits
         checker = InputChecker(load_vehicle(vehicle or None, cfg),
                                nmpc.inputs.for_period(params.cycle_time, nmpc.Ts))
-        self._gw = Gateway(None if log_file else can.Bus(**params.bus.kwargs()), codec, params,
-                           checker)
+        self._gw = Gateway(None if log_file else open_transport(params), codec, params, checker)
         self._replay = LogReplay(log_file) if log_file else None
-        self._hw = log_file or f'{params.bus.interface}:{params.bus.channel}'
+        self._hw = log_file or params.link()
         self._stats, self._diag_period = None, 1.0
         state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
@@ -111,8 +113,8 @@ class BridgeNode(Node):
 
     def close(self):
         self._gw.shutdown()
-        if self._gw.bus is not None:
-            self._gw.bus.shutdown()
+        if self._gw.transport is not None:
+            self._gw.transport.shutdown()
 
 
 def main(args=None) -> int:

@@ -56,6 +56,8 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     for name, count in stats['rx'].items():
         values[f'rx_hz/{name}'] = f'{(count - before.get(name, 0)) / period:.1f}'
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
+    values.update({f'e2e/{k}': v for k, v in stats.get('e2e', {}).items()})
+    values.update({f'drops/{k}': v for k, v in stats.get('drops', {}).items()})
     values.update({f'tx/{k}': v for k, v in stats['tx'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
     status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
