@@ -1,9 +1,11 @@
-"""The whole loop over CAN: sim -> CAN -> bridge -> reference -> NMPC -> bridge -> CAN -> sim.
+"""The whole loop over the car's link: sim -> link -> bridge -> reference -> NMPC -> bridge -> sim.
 
-The slow tests share one run of the ``sim_can`` graph of ``config/stack.yaml`` in real time
+Two links: classic CAN (``sim_can``: python-can udp_multicast, the DBC, E2E P01) and FlexRay
+PDUs through an Ethernet gateway (``sim_flexray``: the ARXML's PDUs with AUTOSAR Socket Adaptor
+headers over UDP, E2E P02). For each, the slow tests share one run of the graph in real time
 through ``scripts/run_in_netns.sh`` (a private network namespace with only loopback, so no
-udp_multicast frame leaves the machine), recorded and read back: one judges the bus and the
-bridge, the other the drift the controller drives through them.
+datagram leaves the machine), recorded and read back: one judges the link and the bridge, the
+other the drift the controller drives through them.
 The fast tests pin down ``auto_arm``: simulated buses only, arms once the state allows it,
 and a drop to OFF after having been ACTIVE stays latched.
 """
@@ -26,13 +28,12 @@ from drift_vehicle_bridge.params import load_bridge_params
 from drift_vehicle_bridge.vehicle_side import CarSide
 from test_bridge_udp import NETNS_REASON
 
-DOMAIN_ID = 110
+LINKS = {'can': ('sim_can', 'can/drift_vehicle.dbc', 110),         # graph, description, domain
+         'flexray': ('sim_flexray', 'flexray/drift_vehicle.arxml', 111)}
 RUN_S = 16.0                    # wall-clock run length [s]
 SCENARIO = 'drift_hold_dry'     # handed over in an established 30 deg drift (see its yaml)
 DRIFT_DEG, SPIN_DEG = 20.0, 75.0
 STALL_S = load_bridge_params().monitor.frame_timeout   # a longer simulator stall drops the bridge
-STATE_FRAMES = ('DS_VELOCITY', 'DS_YAW', 'DS_ACCEL', 'DS_WHEELS_FRONT', 'DS_WHEELS_REAR',
-                'DS_STEERING', 'DS_POWERTRAIN', 'DS_POSE_XY', 'DS_POSE_YAW')
 
 
 # ---------------------------------------------------------------- auto_arm (fast, no ROS)
@@ -145,11 +146,12 @@ def _realtime_prefix() -> list[str]:
     return ['nice', '-n', '-5']
 
 
-@pytest.fixture(scope='module')
-def can_loop(tmp_path_factory):
-    """One run of the sim_can graph (RUN_S of wall time), recorded and read back."""
+@pytest.fixture(scope='module', params=list(LINKS))
+def can_loop(request, tmp_path_factory):
+    """One run of the link's graph (RUN_S of wall time), recorded and read back."""
     if NETNS_REASON is not None:
         pytest.skip(NETNS_REASON)
+    graph, description, domain_id = LINKS[request.param]
     from drift_tools.bag import read_bag
     from drift_tools.report import run_metrics
     from drift_tools.timeseries import series_from_bag
@@ -160,7 +162,8 @@ def can_loop(tmp_path_factory):
         t0 = time.monotonic()
         proc = subprocess.run(
             [*_realtime_prefix(), str(REPO / 'scripts' / 'run_in_netns.sh'), '--duration',
-             str(RUN_S), '--scenario', SCENARIO, '--bag', str(bag), '--domain-id', str(DOMAIN_ID),
+             str(RUN_S), '--scenario', SCENARIO, '--bag', str(bag), '--domain-id', str(domain_id),
+             '--graph', graph,
              '--kill-timeout', '5', '--no-summary'],
             env={**os.environ, 'PYTHON': PYTHON}, capture_output=True, text=True, timeout=60)
         wall = time.monotonic() - t0
@@ -172,7 +175,7 @@ def can_loop(tmp_path_factory):
         # as it must on a car; that run says nothing about the loop: run once more (printed)
         if np.diff(t).max() <= STALL_S or attempt == 2:
             break
-        print(f'CAN loop run {attempt}: the simulator stalled {1e3 * np.diff(t).max():.0f} ms '
+        print(f'{graph} run {attempt}: the simulator stalled {1e3 * np.diff(t).max():.0f} ms '
               f'(machine load); running again')
     diags = _bridge_diagnostics(messages)
     for d in diags:
@@ -181,14 +184,27 @@ def can_loop(tmp_path_factory):
     timing = (f'simulator {(len(t) - 1) / (t[-1] - t[0]):.1f} steps/s, longest step gap '
               f'{1e3 * np.diff(t).max():.0f} ms (bridge frame timeout 30 ms), NMPC solve p99 '
               f'{m["solve_time_ms_p99"]:.1f} ms, max {m["solve_time_ms_max"]:.1f} ms')
-    print(f'CAN loop run: wall {wall:.1f} s; {timing}; bag {bag}')
-    return SimpleNamespace(run=run, metrics=m, diags=diags, wall=wall, timing=timing)
+    print(f'{graph} run: wall {wall:.1f} s; {timing}; bag {bag}')
+    from drift_vehicle_bridge.codec import Codec
+    from drift_control.params import config_dir
+    codec = Codec.load(config_dir() / description)
+    return SimpleNamespace(run=run, metrics=m, diags=diags, wall=wall, timing=timing,
+                           link=request.param, codec=codec)
+
+
+def _active_drops(diags) -> dict[str, int]:
+    """Drops to OFF out of an active mode, by reason (an ARMED bridge that drops while the car
+    still starts is re-armed by auto_arm: it never requested anything)."""
+    last = diags[-1] if diags else {}
+    return {k.split('/')[-1]: int(v) for k, v in last.items()
+            if k.startswith('drops/ACTIVE_')}
 
 
 @pytest.mark.ros
 @pytest.mark.slow
 def test_can_loop_bus_and_bridge(can_loop):
-    """Both directions every 10 ms, intact; requests reach the plant; any drop has its cause."""
+    """Both directions every 10 ms, every PDU protected and checked, intact; requests reach the
+    plant; any drop out of ACTIVE has its cause."""
     run, diags = can_loop.run, can_loop.diags
     truth, t = run.truth, run.truth['t']
     assert can_loop.wall < 40.0, f'the CAN loop run took {can_loop.wall:.1f} s'
@@ -198,11 +214,19 @@ def test_can_loop_bus_and_bridge(can_loop):
     faults = {k: v for d in diags for k, v in d.items() if k.startswith(('rx_fault/', 'error/'))}
     assert faults == {}, f'CRC/counter/range faults or bus errors: {faults}'
     # udp_multicast loops every datagram back to its sender: the bridge's own request frames are
-    # its only "foreign" frames (within the one cycle still in flight when diagnostics are taken).
+    # its only "foreign" frames (within the one cycle still in flight when diagnostics are taken);
+    # unicast UDP hands the bridge only the gateway's datagrams.
     for d in diags:
-        own = sum(int(v) for k, v in d.items() if k.startswith('tx/'))
+        own = sum(int(v) for k, v in d.items() if k.startswith('tx/')) \
+            if can_loop.link == 'can' else 0
         assert 0 <= own - int(d['foreign_frames']) <= 6, f'foreign frames: {d}'
     assert all(d['validity'] == '0x7ff' for d in diags[1:]), [d['validity'] for d in diags]
+    state_pdus = list(can_loop.codec.state_frames)
+    assert all(f'e2e/{name}' not in d for d in diags[1:] for name in state_pdus), \
+        'every state PDU E2E VALID after start-up'
+    # the state PDUs' rate from their reception stamps over the whole run
+    stamped = {name: float(diags[-1][f'rx_rate/{name}']) for name in state_pdus}
+    assert all(99.0 < hz < 101.0 for hz in stamped.values()), f'PDUs per second: {stamped}'
 
     active = [d for d in diags if d['mode'] == 'ACTIVE_FULL']
     modes = [d['mode'] for d in diags]
@@ -212,7 +236,7 @@ def test_can_loop_bus_and_bridge(can_loop):
     # 1 s nominal, so its sum is the count (the diagnostics timer itself jitters under load).
     span = diags[-1]['_t'] - diags[0]['_t']
     rates = {f'rx/{f}': sum(float(d[f'rx_hz/{f}']) for d in diags[1:]) / span
-             for f in STATE_FRAMES}
+             for f in state_pdus}
     rates['tx/DS_CMD_STATUS'] = (int(diags[-1]['tx/DS_CMD_STATUS'])
                                  - int(diags[0]['tx/DS_CMD_STATUS'])) / span
     active_span = active[-1]['_t'] - active[0]['_t']
@@ -227,9 +251,9 @@ def test_can_loop_bus_and_bridge(can_loop):
     delta_err = np.degrees(np.abs(truth['delta'] - resample(run.command, t, 'delta')))[on]
     assert np.median(delta_err) < 1.5, f'steering off the request by {np.median(delta_err):.2f} deg'
 
-    # A drop to OFF must have its cause in the run: the car left the envelope, or the simulator
-    # stalled longer than the frame timeout. Anything else is a bridge or bus fault.
-    reasons = {d['drop_reason'] for d in diags} - {'NONE'}
+    # A drop to OFF out of ACTIVE must have its cause in the run: the car left the envelope, or
+    # the simulator stalled longer than the frame timeout. Anything else is a bridge or bus fault.
+    reasons = set(_active_drops(diags))
     env = load_bridge_params().mode.active_envelope
     outside = ~((truth['V'] >= env.V_min) & (truth['V'] <= env.V_max)
                 & (np.abs(truth['beta']) <= env.beta_max) & (np.abs(truth['r']) <= env.r_max))
@@ -255,7 +279,7 @@ def test_can_loop_holds_the_drift(can_loop):
     steady = t >= m['transient_end_s']
     e_y = resample(run.reference, t, 'e_y')[steady]
     e_y_rms = float(np.sqrt(np.mean(e_y ** 2))) if steady.any() else math.nan
-    drops = [d['drop_reason'] for d in can_loop.diags if d['drop_reason'] != 'NONE']
+    drops = _active_drops(can_loop.diags)
     # the two ways the controller has failed here, judged while the car still moved (V > 3 m/s):
     # torque requests jumping by most of the range every period, or braking into the drift
     moving = run.command['t'] < (t[np.argmax(truth['V'] < 3.0)] if (truth['V'] < 3.0).any()
@@ -270,7 +294,7 @@ def test_can_loop_holds_the_drift(can_loop):
                f'NMPC torque while moving: jumps > 4000 Nm in {100 * chatter:.0f} % of periods, '
                f'< -1000 Nm in {100 * braking:.0f} %; '
                f'{can_loop.timing}')
-    print('CAN loop drift:', summary)
+    print(f'{can_loop.link} loop drift:', summary)
     assert beta_deg[t < 1.0].min() > 20.0, f'starts in the drift; {summary}'
     assert not drops, summary
     assert held > 8.0, summary
@@ -281,5 +305,8 @@ def test_can_loop_holds_the_drift(can_loop):
     # a drift, not a slide: counter-steer and drive torque (released: +10.6 deg, no torque)
     assert np.degrees(np.mean(truth['delta'][steady])) < -10.0, summary
     assert np.mean(truth['drive_torque'][steady]) > 500.0, summary
-    late = run.status['t'] > 0.5
-    assert np.all(run.status['status'][late] == 0), 'NMPC solved every cycle once running'
+    # once running the NMPC never falls back; a reference late by a process schedule (real time,
+    # a loaded machine) is bridged by the shifted plan, as designed, and must stay rare
+    status = run.status['status'][run.status['t'] > 0.5]
+    assert np.all(status <= 1) and np.mean(status == 1) < 0.01, \
+        f'NMPC statuses once running: {np.bincount(status.astype(int)).tolist()}'

@@ -117,8 +117,16 @@ def write_params_file(cfg: StackConfig, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, 'w', encoding='utf-8') as fh:
-        yaml.safe_dump(cfg.node_params or {'/**': {'ros__parameters': {}}}, fh, sort_keys=False)
+        yaml.dump(cfg.node_params or {'/**': {'ros__parameters': {}}}, fh, Dumper=_NoAliases,
+                  sort_keys=False)
     return path
+
+
+class _NoAliases(yaml.SafeDumper):
+    """rcl's parameter parser refuses YAML aliases: a value shared in stack.yaml is written out."""
+
+    def ignore_aliases(self, data):
+        return True
 
 
 @dataclass(frozen=True)

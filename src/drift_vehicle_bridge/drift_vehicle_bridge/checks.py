@@ -47,6 +47,7 @@ class FrameChecker:
         self.faults: Counter = Counter()       # Fault value -> rejected
         self.foreign = 0                       # known PDUs not meant for this side
         self._intact: dict[str, bool] = {}     # the last PDU received passed every check
+        self._stamps: dict[str, list[float]] = {}   # name -> [first, last] accepted stamp [s]
 
     def check(self, pdu: Pdu, now: float) -> Frame | None:
         """The decoded PDU if it passes every check, else None (and the fault is counted)."""
@@ -75,6 +76,8 @@ class FrameChecker:
             return None
         self._intact[name] = True
         self.accepted[name] += 1
+        stamp = pdu.timestamp or now
+        self._stamps.setdefault(name, [stamp, stamp])[1] = stamp
         return frame
 
     def no_new_data(self, name: str) -> None:
@@ -88,6 +91,11 @@ class FrameChecker:
     def states(self) -> dict[str, str]:
         """E2E status and state of each PDU that is not valid (diagnostics)."""
         return {n: rx.reason() for n, rx in self.receivers.items() if not self.valid(n)}
+
+    def rates(self) -> dict[str, float]:
+        """Accepted PDUs per second of each PDU since the first, from their reception stamps."""
+        return {n: (self.accepted[n] - 1) / (last - first)
+                for n, (first, last) in self._stamps.items() if last > first}
 
     @property
     def rejected(self) -> int:

@@ -66,6 +66,7 @@ class Gateway:
         self._command: Command | None = None
         self._command_time: float | None = None
         self.been_active = False
+        self.discarded_at_start = 0   # PDUs queued before the first cycle, dropped
 
     @classmethod
     def open(cls, params: BridgeParams, cfg_dir: str | os.PathLike | None = None) -> 'Gateway':
@@ -98,6 +99,24 @@ class Gateway:
     def disarm(self) -> None:
         self.modes.disarm()
 
+    def discard_backlog(self) -> int:
+        """Drop what the link queued before the first cycle; returns how many PDUs.
+
+        A node opens its link before its first tick: what arrives meanwhile is the car before
+        the bridge ran, and a receive queue that overflowed in that time would read as counter
+        jumps of every PDU.
+        """
+        n = 0
+        while self.transport is not None and n < 100 * MAX_FRAMES_PER_CYCLE:
+            try:
+                if self.transport.recv(timeout=0.0) is None:
+                    break
+            except (can.CanError, OSError, ValueError):
+                continue
+            n += 1
+        self.discarded_at_start += n
+        return n
+
     def step(self, now: float) -> VehicleState | None:
         """One cycle at ``now`` [s]: drain the link, update state and mode, write the PDUs."""
         self._drain(now)
@@ -125,9 +144,12 @@ class Gateway:
         return {'mode': self.mode.name, 'drop_reason': self.modes.reason.name,
                 'drops': dict(self.modes.drops), 'implausible': self.modes.implausible or '',
                 'validity': self.state.validity if self.state else 0,
-                'rx': dict(checker.accepted), 'faults': dict(checker.faults),
-                'e2e': checker.states(), 'foreign': checker.foreign, 'tx': dict(self.sent),
-                'errors': dict(self.errors)}
+                'rx': dict(checker.accepted), 'rx_rate': checker.rates(),
+                'faults': dict(checker.faults),
+                'e2e': checker.states(), 'foreign': checker.foreign,
+                'discarded_at_start': self.discarded_at_start, 'tx': dict(self.sent),
+                'errors': {**self.errors, **{f'link_{k}': v for k, v in
+                                             getattr(self.transport, 'errors', {}).items()}}}
 
     def _drain(self, now: float) -> None:
         if self.transport is None:

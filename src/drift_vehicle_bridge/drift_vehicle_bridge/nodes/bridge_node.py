@@ -56,6 +56,7 @@ class BridgeNode(Node):
         self._replay = LogReplay(log_file) if log_file else None
         self._hw = log_file or params.link()
         self._stats, self._diag_period = None, 1.0
+        self._ticked = False
         state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
@@ -91,6 +92,9 @@ class BridgeNode(Node):
     def _on_tick(self):
         # one bus cycle per tick, never a catch-up burst: several command frames within a
         # millisecond would move the actuators at a multiple of the limited rate
+        if not self._ticked:   # what queued up while the node started is not the car now
+            self._ticked = True
+            self._gw.discard_backlog()
         now = time.monotonic()
         for msg in self._replay.due(now) if self._replay else ():
             self._gw.receive(msg, now)

@@ -51,12 +51,14 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
         status.level = DiagnosticStatus.ERROR
         status.message = f"implausible vehicle state: {stats['implausible']}"
     values = {'mode': stats['mode'], 'drop_reason': stats['drop_reason'],
-              'validity': f'0x{validity:03x}', 'foreign_frames': stats['foreign']}
+              'validity': f'0x{validity:03x}', 'foreign_frames': stats['foreign'],
+              'discarded_at_start': stats.get('discarded_at_start', 0)}
     before = previous['rx'] if previous else {}
     for name, count in stats['rx'].items():
         values[f'rx_hz/{name}'] = f'{(count - before.get(name, 0)) / period:.1f}'
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
     values.update({f'e2e/{k}': v for k, v in stats.get('e2e', {}).items()})
+    values.update({f'rx_rate/{k}': f'{v:.1f}' for k, v in stats.get('rx_rate', {}).items()})
     values.update({f'drops/{k}': v for k, v in stats.get('drops', {}).items()})
     values.update({f'tx/{k}': v for k, v in stats['tx'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
