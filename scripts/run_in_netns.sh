@@ -4,7 +4,8 @@
 #   scripts/run_in_netns.sh --duration 20 --bag runs/can     # run_stack.py --graph sim_can ...
 #   scripts/run_in_netns.sh -- CMD [ARGS...]                  # any command, e.g. a shell
 #
-# The sim_can graph talks CAN over python-can udp_multicast: UDP datagrams to 239.74.163.10. In
+# The sim_can graph talks CAN over python-can udp_multicast: UDP datagrams to 239.74.163.10;
+# --graph sim_canfd CAN FD the same way, --graph sim_flexray FlexRay PDUs over UDP unicast. In
 # a fresh namespace (unshare -n) with lo up, multicast on and 239.0.0.0/8 routed to lo, no frame
 # can leave the machine; ROS discovery is kept to LOCALHOST on that lo. As non-root, unshare also
 # maps the user to root in a user namespace (-r), where the kernel allows that.

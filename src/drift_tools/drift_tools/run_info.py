@@ -14,7 +14,7 @@ import subprocess
 from pathlib import Path
 
 RECORD_NAME = 'drift_run'
-CONFIG_SUFFIXES = ('.yaml', '.yml', '.dbc', '.tir', '.csv')
+CONFIG_SUFFIXES = ('.yaml', '.yml', '.dbc', '.arxml', '.tir', '.csv')
 
 
 def config_files(config_dir) -> dict[str, str]:
