@@ -4,13 +4,16 @@ A bag's ``ros2msg`` schema is the type's own ``.msg`` text followed by every typ
 each after a line of 80 ``=`` and a ``MSG: pkg/Name`` line -- the layout rosbag2 writes and
 ``mcap_ros2`` and ``rosbags`` parse. ``.msg`` files are looked up in ``share/<pkg>/msg/`` of the
 ament prefixes and of this interpreter's prefix (where the ROS wheels and drift_msgs install), then
-in ``src/<pkg>/msg/`` of this checkout.
+in ``src/<pkg>/msg/`` of this checkout. A definition is also read back field by field
+(``parse_fields``, ``leaves``): each primitive value of a type with the unit its line's comment
+gives (``float64 v  # speed over ground [m/s]``) and its ``FIELD_*`` constants.
 """
 from __future__ import annotations
 
 import os
 import re
 import sys
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -53,29 +56,132 @@ def msg_text(msgtype: str) -> str:
     raise MsgDefError(f'no {pkg}/msg/{name}.msg under {[str(d) for d in _search_dirs()]}')
 
 
+@dataclass(frozen=True)
+class Field:
+    """One field or constant line of a ``.msg`` text."""
+
+    type: str            # a primitive ('float64', 'string') or 'pkg/msg/Name'
+    name: str
+    array: int | None    # None: one value; n: a fixed array of n; -1: a sequence (bounded or not)
+    comment: str         # the line's own comment, '#' stripped
+    value: str | None    # a constant's value; None for a field
+
+    @property
+    def unit(self) -> str:
+        """The last ``[...]`` of the comment (``# speed over ground [m/s]`` -> ``m/s``), or ''."""
+        found = re.findall(r'\[([^\[\]]*)\]', self.comment)
+        return found[-1].strip() if found else ''
+
+
+_CONSTANT = re.compile(r'^(\S+)\s+([A-Za-z]\w*)\s*=\s*(.*)$')
+_FIELD = re.compile(r'^(\S+)\s+(\w+)(?:\s+.*)?$')
+
+
+def parse_fields(pkg: str, text: str) -> list[Field]:
+    """The fields and constants of one ``.msg`` text of package ``pkg``, in file order."""
+    out = []
+    for line in text.splitlines():
+        code, _, comment = line.partition('#')
+        code = code.strip()
+        if not code:
+            continue
+        match = _CONSTANT.match(code) or _FIELD.match(code)
+        if match is None:
+            continue
+        type_token, name = match.group(1), match.group(2)
+        value = match.group(3).strip() if match.re is _CONSTANT else None
+        array = None
+        shape = re.search(r'\[(<=)?(\d*)\]$', type_token)
+        if shape:
+            array = int(shape.group(2)) if shape.group(2) and not shape.group(1) else -1
+            type_token = type_token[:shape.start()]
+        base = re.sub(r'<=\d+$', '', type_token)
+        if base not in PRIMITIVES:
+            if '/' in base:
+                base = normalize(base)
+            elif base == 'Header':
+                base = 'std_msgs/msg/Header'
+            else:
+                base = f'{pkg}/msg/{base}'
+        out.append(Field(base, name, array, comment.strip(), value))
+    return out
+
+
 def dependencies(pkg: str, text: str) -> list[str]:
     """Non-primitive field types of one ``.msg`` text, as ``pkg/msg/Name``, in field order."""
     deps = []
-    for line in text.splitlines():
-        line = line.split('#', 1)[0].strip()
-        if not line:
-            continue
-        type_token, _, rest = line.partition(' ')
-        if re.match(r'^\s*\w+\s*=', rest):       # a constant: always a primitive
-            continue
-        base = re.sub(r'\[.*\]$', '', type_token)
-        base = re.sub(r'<=\d+$', '', base)
-        if base in PRIMITIVES:
-            continue
-        if '/' in base:
-            dep = normalize(base)
-        elif base == 'Header':
-            dep = 'std_msgs/msg/Header'
-        else:
-            dep = f'{pkg}/msg/{base}'
-        if dep not in deps:
-            deps.append(dep)
+    for f in parse_fields(pkg, text):
+        if f.value is None and f.type not in PRIMITIVES and f.type not in deps:
+            deps.append(f.type)
     return deps
+
+
+def split_definition(msgtype: str, definition: str) -> dict[str, str]:
+    """A full definition (the root's text, then ``MSG: pkg/Name`` sections) -> type -> text."""
+    out, current, lines = {}, normalize(msgtype), []
+    for line in definition.splitlines():
+        if line.strip() == SEPARATOR:
+            out[current], current, lines = '\n'.join(lines), None, []
+        elif current is None and line.startswith('MSG:'):
+            current = normalize(line[4:].strip())
+        elif current is not None:
+            lines.append(line)
+    if current is not None:
+        out[current] = '\n'.join(lines)
+    return out
+
+
+@dataclass(frozen=True)
+class Leaf:
+    """A primitive value in a message: a field, or an element of a fixed array, at any depth."""
+
+    name: str          # 'header.stamp.sec', 'wheel_speeds[2]', 'target.v'
+    path: tuple        # ('header', 'stamp', 'sec'), ('wheel_speeds', 2), ('target', 'v')
+    type: str          # the primitive type
+    unit: str          # from the field's line (Field.unit)
+    comment: str
+    values: dict       # value -> name of the field's FIELD_* constants (MODE_OFF = 0: {0: 'OFF'})
+
+
+# builtin_interfaces/Time carries no unit comments; a stamp's two parts get theirs here
+TIME_UNITS = {('builtin_interfaces/msg/Time', 'sec'): 's',
+              ('builtin_interfaces/msg/Time', 'nanosec'): 'ns'}
+_INTEGERS = frozenset({'byte', 'char', 'int8', 'uint8', 'int16', 'uint16', 'int32', 'uint32',
+                       'int64', 'uint64'})
+
+
+def leaves(msgtype: str, definition: str) -> tuple[list[Leaf], list[tuple]]:
+    """The primitive leaves of ``msgtype`` and the paths of its sequences (no fixed layout).
+
+    ``definition`` is the full definition (a bag's schema); a type it lacks is looked up here.
+    """
+    texts = split_definition(msgtype, definition)
+    found, sequences = [], []
+
+    def walk(typ, prefix, path):
+        fields = parse_fields(typ.split('/')[0], texts[typ] if typ in texts else msg_text(typ))
+        constants = [f for f in fields if f.value is not None]
+        for f in fields:
+            if f.value is not None:
+                continue
+            if f.array == -1:
+                sequences.append(path + (f.name,))
+                continue
+            items = [(prefix + f.name, path + (f.name,))] if f.array is None else \
+                [(f'{prefix}{f.name}[{i}]', path + (f.name, i)) for i in range(f.array)]
+            for name, where in items:
+                if f.type not in PRIMITIVES:
+                    walk(f.type, name + '.', where)
+                    continue
+                table = {int(c.value): c.name[len(f.name) + 1:] for c in constants
+                         if f.type in _INTEGERS and c.type == f.type
+                         and c.name.startswith(f.name.upper() + '_')
+                         and c.value.lstrip('-').isdigit()}
+                found.append(Leaf(name, where, f.type, f.unit or TIME_UNITS.get((typ, f.name), ''),
+                                  f.comment, table))
+
+    walk(normalize(msgtype), '', ())
+    return found, sequences
 
 
 @lru_cache(maxsize=None)
