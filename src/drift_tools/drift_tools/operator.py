@@ -4,7 +4,7 @@
     drift topic list | echo | hz | pub       live topics
     drift service call SERVICE TYPE [YAML]   any service
     drift param list | get | set NODE ...    node parameters
-    drift bag info | recover | slice | export   recorded runs (bags are only read)
+    drift bag info | recover | slice | export   recorded runs (read only; export: CSV or MDF4)
 
 Exit codes: 0 done, 1 refused or nothing heard (the reason on stderr), 2 bad input. Uses
 ROS_DOMAIN_ID from the environment; ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST.
@@ -146,9 +146,19 @@ def bag_slice(args) -> int:
 
 def bag_export(args) -> int:
     from drift_tools.bag_tools import export_csv
+    if (args.format or export_format(args.out)) == 'mdf4':
+        from drift_tools.mdf import export_mdf
+        print('\n'.join(export_mdf(args.bag, args.out, args.topics).lines()))
+        return 0
     for path, rows in export_csv(args.bag, args.out, args.topics):
         print(f'{path}: {rows} rows')
     return 0
+
+
+def export_format(out: Path) -> str:
+    """'mdf4' for an output named ``*.mf4`` or ``*.mdf``, else 'csv' (a directory)."""
+    from drift_tools.mdf import SUFFIXES
+    return 'mdf4' if out.suffix.lower() in SUFFIXES else 'csv'
 
 
 # --- the command line ---------------------------------------------------------------------------
@@ -226,9 +236,11 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument('--start', type=float, default=0.0, help='[s] after the first message')
     s.add_argument('--end', type=float, default=None, help='[s] after the first message')
     s.add_argument('--topics', nargs='*', default=None)
-    s = bag.add_parser('export', help='one CSV per topic (flattened fields)')
+    s = bag.add_parser('export', help='one CSV per topic, or one MDF4 file (a channel per field)')
     s.add_argument('bag', type=Path)
-    s.add_argument('out', type=Path, help='directory for the CSV files')
+    s.add_argument('out', type=Path, help='directory for the CSV files, or the .mf4 file')
+    s.add_argument('--format', choices=('csv', 'mdf4'), default=None,
+                   help='default: mdf4 when OUT ends in .mf4 or .mdf, else csv')
     s.add_argument('--topics', nargs='*', default=None)
     return p
 
