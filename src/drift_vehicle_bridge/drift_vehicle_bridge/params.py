@@ -57,7 +57,7 @@ class MonitorParams:
     """Receive checks: E2E counter tolerance, state machine and per-PDU timeouts."""
 
     frame_timeout: float = 0.03         # a state PDU older than this is stale [s] (3 cycles)
-    max_counter_delta: int = 2          # accepted counter step; 2 tolerates one lost PDU
+    max_counter_delta: int = 3          # accepted counter step: 2 lost PDUs, the frame timeout's gap
     timeouts: dict[str, float] = field(default_factory=dict)   # per-PDU overrides [s]
     e2e: SMConfig = SMConfig()          # AUTOSAR E2E state machine of every PDU
 

@@ -46,7 +46,7 @@ class CarSide:
     """
 
     def __init__(self, link, codec: Codec | None = None, command_timeout: float = 0.03,
-                 max_counter_delta: int = 2, sm: SMConfig | None = None):
+                 max_counter_delta: int = 3, sm: SMConfig | None = None):
         self.transport = as_transport(link)
         self.codec = codec or Codec.load(default_dbc())
         self.command_timeout = command_timeout
