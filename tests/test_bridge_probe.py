@@ -83,3 +83,37 @@ def test_probe_listens_on_a_udp_link():
         reports = probe(listener, codec, 0.3)
     assert {r.name for r in reports} == set(codec.state_frames)
     assert all(r.count == 5 and r.accepted == 5 for r in reports), reports
+
+
+def test_drift_probe_lists_a_gateway_s_pdus_and_exits_1_when_one_is_missing(capsys):
+    """The operator's command on a UDP link, a simulated gateway sending from a thread."""
+    import threading
+    import time
+    from drift_tools.operator import main
+    codec = Codec.load(config_dir() / 'flexray' / 'drift_vehicle.arxml')
+    ours, gateway = _free_port(), _free_port()
+    args = ['probe', '--duration', '0.4', '--set', 'transport=udp', '--set',
+            'description=flexray/drift_vehicle.arxml', '--set', f'udp.local=127.0.0.1:{ours}',
+            '--set', f'udp.remote=127.0.0.1:{gateway}']
+
+    def drive(stop, skip=()):   # until the probe has finished, however long it takes to start
+        with UdpTransport(('127.0.0.1', gateway), ('127.0.0.1', ours)) as link:
+            car = CarSide(link, codec)
+            while not stop.is_set():
+                car.send_state(VehicleState(0.0, 8.0, -0.3, 0.6), skip=skip)
+                time.sleep(0.01)
+
+    for skip, code in (((), 0), (('DS_YAW',), 1)):
+        stop = threading.Event()
+        sender = threading.Thread(target=drive, args=(stop, skip))
+        sender.start()
+        try:
+            assert main(args) == code
+        finally:
+            stop.set()
+            sender.join()
+        out, err = capsys.readouterr()
+        assert 'DS_VELOCITY' in out and 'OK, VALID' in out, out
+        assert ('DS_YAW' in err) == bool(skip), err
+    assert main(['probe', '--set', 'transport=flexray']) == 2
+    assert 'bridge.transport' in capsys.readouterr().err

@@ -5,6 +5,7 @@
     drift service call SERVICE TYPE [YAML]   any service
     drift param list | get | set NODE ...    node parameters
     drift bag info | recover | slice | export   recorded runs (read only; export: CSV or MDF4)
+    drift probe                              the car's link: PDUs seen, rates, E2E states
 
 Exit codes: 0 done, 1 refused or nothing heard (the reason on stderr), 2 bad input. Uses
 ROS_DOMAIN_ID from the environment; ROS_AUTOMATIC_DISCOVERY_RANGE defaults to LOCALHOST.
@@ -173,6 +174,37 @@ BAG_COMMANDS = {'info': bag_info, 'recover': bag_recover, 'slice': bag_slice,
                 'export': bag_export}
 
 
+def probe(args) -> int:
+    """Listen on the link config/bridge.yaml names (no ROS, nothing sent) and report its PDUs."""
+    import can
+    from drift_control.params import ParamError, parse_overrides
+    from drift_vehicle_bridge.codec import Codec
+    from drift_vehicle_bridge.params import description_path, load_bridge_params
+    from drift_vehicle_bridge.probe import format_reports, probe as listen
+    from drift_vehicle_bridge.transport import open_transport
+    if not args.duration > 0:
+        raise CliError(f'--duration must be > 0 s, got {args.duration}', 2)
+    try:
+        params = load_bridge_params(args.config_dir, parse_overrides(args.set, 'bridge'))
+        codec = Codec.load(description_path(params, args.config_dir))
+    except ParamError as err:
+        raise CliError(str(err), 2) from None
+    try:
+        with open_transport(params) as link:
+            reports = listen(link, codec, args.duration, params.monitor.max_counter_delta,
+                             params.monitor.e2e)
+    except (OSError, can.CanError, ParamError) as err:
+        raise CliError(f'cannot listen on {params.link()}: {err}') from None
+    print(f'{params.link()}, {codec.description.source}, {args.duration:g} s')
+    print(format_reports(reports, codec))
+    seen = {r.name: r for r in reports}
+    bad = [n for n in codec.state_frames
+           if n not in seen or seen[n].e2e.rpartition(', ')[2] != 'VALID']
+    if bad:
+        raise CliError(f'state PDU(s) missing or not E2E VALID: {", ".join(bad)}')
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='drift', description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest='command', required=True)
@@ -242,6 +274,13 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument('--format', choices=('csv', 'mdf4'), default=None,
                    help='default: mdf4 when OUT ends in .mf4 or .mdf, else csv')
     s.add_argument('--topics', nargs='*', default=None)
+
+    s = sub.add_parser('probe', help='listen on the car\'s link (instead of the bridge): PDUs '
+                                     'seen, rates from their stamps, E2E states')
+    s.add_argument('--duration', type=float, default=2.0, help='[s]')
+    s.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
+                   help='config/bridge.yaml override, e.g. transport=udp (repeatable)')
+    s.add_argument('--config-dir', type=Path, default=None)
     return p
 
 
@@ -250,6 +289,8 @@ def main(argv=None) -> int:
     try:
         if args.command == 'bag':
             return BAG_COMMANDS[args.sub](args)
+        if args.command == 'probe':
+            return probe(args)
         from drift_tools.nodes import cli_ros
         command = getattr(cli_ros, ROS_COMMANDS[(args.command, getattr(args, 'sub', None))])
         ros = cli_ros.Ros()
