@@ -33,3 +33,17 @@ def test_read_back_from_a_finished_and_an_unfinished_bag(tmp_path):
     assert spec.vehicle == 'gr86' and spec.surface.name == 'wet'
     assert run_scenario({'scenario': 'no_such_scenario'}) is None
     assert run_scenario(None) is None
+
+
+def test_a_large_config_file_is_kept_as_its_hash(tmp_path):
+    """A generated ARXML (~0.5 MB) must not fill a small disk with every bag's run record."""
+    import hashlib
+    from drift_tools.run_info import KEEP_BYTES, config_files
+    (tmp_path / 'bridge.yaml').write_text('cycle_time: 0.01\n')
+    big = b'<AUTOSAR/>' + b' ' * KEEP_BYTES
+    (tmp_path / 'flexray').mkdir()
+    (tmp_path / 'flexray' / 'car.arxml').write_bytes(big)
+    files = config_files(tmp_path)
+    assert files['bridge.yaml'] == 'cycle_time: 0.01\n'
+    assert files['flexray/car.arxml'] == \
+        f'sha256:{hashlib.sha256(big).hexdigest()} ({len(big)} bytes, not kept)'

@@ -17,11 +17,22 @@ RECORD_NAME = 'drift_run'
 CONFIG_SUFFIXES = ('.yaml', '.yml', '.dbc', '.arxml', '.tir', '.csv')
 
 
+KEEP_BYTES = 64 * 1024   # a larger file (a generated ARXML) is kept as its hash, not its text
+
+
 def config_files(config_dir) -> dict[str, str]:
-    """Relative path -> text of every configuration file under ``config_dir``."""
+    """Relative path -> text of every configuration file under ``config_dir`` (a file over
+    ``KEEP_BYTES``: ``sha256:<hex>`` and its size, so a bag on a small disk stays small)."""
     root = Path(config_dir)
-    return {str(p.relative_to(root)): p.read_text(encoding='utf-8', errors='replace')
+    return {str(p.relative_to(root)): _text_or_hash(p)
             for p in sorted(root.rglob('*')) if p.is_file() and p.suffix in CONFIG_SUFFIXES}
+
+
+def _text_or_hash(path: Path) -> str:
+    data = path.read_bytes()
+    if len(data) > KEEP_BYTES:
+        return f'sha256:{hashlib.sha256(data).hexdigest()} ({len(data)} bytes, not kept)'
+    return data.decode('utf-8', errors='replace')
 
 
 def git_version(repo) -> tuple[str, bool | None]:
