@@ -114,11 +114,11 @@ def _longest_run(t, mask) -> float:
     return max(best, t[-1] - start) if start is not None else best
 
 
-def _bridge_diagnostics(messages):
+def _bridge_diagnostics(messages, name='vehicle_bridge: CAN'):   # not its 'recording' status
     out = []
     for m in messages.get('/diagnostics', []):
         for status in m.msg.status:
-            if status.name == 'vehicle_bridge: CAN':   # not its 'recording' status
+            if status.name == name:
                 out.append({kv.key: kv.value for kv in status.values})
                 out[-1]['_t'] = m.msg.header.stamp.sec + 1e-9 * m.msg.header.stamp.nanosec
     return out
@@ -178,7 +178,8 @@ def can_loop(request, tmp_path_factory):
         print(f'{graph} run {attempt}: the simulator stalled {1e3 * np.diff(t).max():.0f} ms '
               f'(machine load); running again')
     diags = _bridge_diagnostics(messages)
-    for d in diags:
+    car = _bridge_diagnostics(messages, 'car side')
+    for d in diags + car:
         d['_t'] -= run.t0
     m = run_metrics(run)
     timing = (f'simulator {(len(t) - 1) / (t[-1] - t[0]):.1f} steps/s, longest step gap '
@@ -188,7 +189,7 @@ def can_loop(request, tmp_path_factory):
     from drift_vehicle_bridge.codec import Codec
     from drift_control.params import config_dir
     codec = Codec.load(config_dir() / description)
-    return SimpleNamespace(run=run, metrics=m, diags=diags, wall=wall, timing=timing,
+    return SimpleNamespace(run=run, metrics=m, diags=diags, car=car, wall=wall, timing=timing,
                            link=request.param, codec=codec)
 
 
@@ -227,6 +228,15 @@ def test_can_loop_bus_and_bridge(can_loop):
     # the state PDUs' rate from their reception stamps over the whole run
     stamped = {name: float(diags[-1][f'rx_rate/{name}']) for name in state_pdus}
     assert all(99.0 < hz < 101.0 for hz in stamped.values()), f'PDUs per second: {stamped}'
+    # the car's end checks every request PDU the same way: nothing rejected, all VALID, 100 Hz
+    from drift_vehicle_bridge.codec import COMMAND_FRAMES
+    car = can_loop.car
+    assert len(car) >= RUN_S - 4, f'{len(car)} car-side diagnostics'
+    car_faults = {k: v for d in car for k, v in d.items() if k.startswith(('rx_fault/', 'error/'))}
+    assert car_faults == {}, f'request PDUs rejected at the car: {car_faults}'
+    assert not any(k.startswith('e2e/') for k in car[-1]), f'car side: {car[-1]}'
+    car_rates = {name: float(car[-1][f'rx_rate/{name}']) for name in COMMAND_FRAMES}
+    assert all(99.0 < hz < 101.0 for hz in car_rates.values()), f'at the car: {car_rates}'
 
     active = [d for d in diags if d['mode'] == 'ACTIVE_FULL']
     modes = [d['mode'] for d in diags]

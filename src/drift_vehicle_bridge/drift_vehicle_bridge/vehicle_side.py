@@ -117,6 +117,14 @@ class CarSide:
         return command_from_signals(status, self._fresh(CMD_STEER, now),
                                     self._fresh(CMD_TORQUE, now), now)
 
+    def stats(self) -> dict:
+        """Counters of the car's end for diagnostics (totals since start)."""
+        checker = self.checker
+        return {'rx': dict(checker.accepted), 'rx_rate': checker.rates(),
+                'faults': dict(checker.faults), 'e2e': checker.states(),
+                'foreign': checker.foreign, 'sent': self.frames_sent,
+                'errors': dict(getattr(self.transport, 'errors', {}))}
+
     def _fresh(self, name: str, now: float) -> dict | None:
         values, seen = self._latest.get(name, (None, -math.inf))
         return values if now - seen <= self.command_timeout and self.checker.valid(name) \

@@ -3,13 +3,14 @@ import json
 import sys
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.task import Future
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from std_msgs.msg import String
+from std_msgs.msg import Header, String
 
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
@@ -88,6 +89,9 @@ class SimNode(Node):
             link = load_bridge_params(cfg, parse_overrides(link_set, 'sim.link_set'),
                                       loaded.scenario.vehicle)
             self._can = CanVehicle(self._sim, CarSide.open(link, cfg), can_hold)
+            self._link_name = link.link()
+            self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+            self.create_timer(1.0, self._on_link_diag)
         elif io != 'ros':
             raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -117,6 +121,13 @@ class SimNode(Node):
         """Release the link of the ``io: link`` mode."""
         if self._can is not None:
             self._can.car.transport.shutdown()
+
+    def _on_link_diag(self):
+        """The car's end of the link: which requests it accepted, their rates and E2E states."""
+        from drift_vehicle_bridge.nodes.convert import car_side_status
+        status = car_side_status(self._can.car.stats(), self._can.released, self._link_name)
+        self._diag_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now()
+                                                             .to_msg()), status=[status]))
 
     def _on_recorder_matched(self, msg):
         try:

@@ -66,6 +66,22 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     return DiagnosticArray(header=Header(stamp=stamp), status=[status])
 
 
+def car_side_status(stats: dict, released: int, hardware_id: str) -> DiagnosticStatus:
+    """The simulated car's end of the link (``CarSide.stats``): what it accepted of the requests."""
+    faulty = stats['faults'] or stats['errors']
+    status = DiagnosticStatus(name='car side', hardware_id=hardware_id,
+                              level=DiagnosticStatus.WARN if faulty else DiagnosticStatus.OK,
+                              message='request faults' if faulty else 'ok')
+    values = {'sent': stats['sent'], 'released_steps': released, 'foreign': stats['foreign']}
+    values.update({f'rx/{k}': v for k, v in stats['rx'].items()})
+    values.update({f'rx_rate/{k}': f'{v:.1f}' for k, v in stats['rx_rate'].items()})
+    values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
+    values.update({f'e2e/{k}': v for k, v in stats['e2e'].items()})
+    values.update({f'error/{k}': v for k, v in stats['errors'].items()})
+    status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+    return status
+
+
 def peer_status(name: str, level: int, message: str) -> DiagnosticStatus:
     """One DiagnosticStatus about another node (the recorder as the bridge sees it)."""
     return DiagnosticStatus(name=name, level=bytes([level]), message=message)
