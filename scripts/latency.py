@@ -1,0 +1,49 @@
+#!/usr/bin/env python3
+"""State -> command latency of a recorded real-time run (recorder log times).
+
+    latency.py BAG [--skip 1.0] [--json]
+
+Each command is matched to the newest state recorded before it; prints p50, p99 and max over the
+commands after the first ``--skip`` seconds. A lock-step bag (log times in sim time) is refused.
+The bag is only read; an MDF4 export is read as well.
+"""
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('bag', type=Path, help='rosbag2 directory or MDF4 export')
+    parser.add_argument('--skip', type=float, default=1.0, help='start-up left out [s]')
+    parser.add_argument('--json', action='store_true', help='print the numbers as JSON')
+    args = parser.parse_args(argv)
+
+    from drift_tools.bag_salvage import BagDamagedError
+    from drift_tools.latency import latency
+    from drift_tools.mdf import log_run_info, read_log
+    if not args.bag.exists():
+        print(f'latency: {args.bag}: no such bag', file=sys.stderr)
+        return 2
+    try:
+        info = log_run_info(args.bag) or {}
+        if info.get('clock') == 'lockstep':
+            print(f'latency: {args.bag} is a lock-step run: its log times are sim time, so '
+                  f'it has no latency to measure (record one with --clock realtime)',
+                  file=sys.stderr)
+            return 2
+        result = latency(read_log(args.bag), args.skip)
+    except (BagDamagedError, OSError, ValueError) as err:
+        print(f'latency: {args.bag}: {err}', file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result.as_dict()))
+    else:
+        print(f'state -> command over {result.n} commands: p50 {1e3 * result.p50:.1f} ms, '
+              f'p99 {1e3 * result.p99:.1f} ms, max {1e3 * result.max:.1f} ms')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
