@@ -86,6 +86,8 @@ def parse_args(argv=None):
                    help='seconds a node gets after SIGINT before SIGKILL')
     p.add_argument('--log-dir', type=Path, help='also write each node\'s output to DIR/<node>.log')
     p.add_argument('--no-summary', action='store_true', help='do not summarise the bag at the end')
+    p.add_argument('--allow-infeasible', action='store_true',
+                   help='start even if the path asks for a drift the car cannot hold')
     return p.parse_args(argv)
 
 
@@ -151,6 +153,8 @@ def main(argv=None) -> int:
             raise ParamError(f'--sim-duration: graph {args.graph!r} has no simulator to end it')
         if opts.scenario:   # the controller's configuration and map, checked before any node
             setup = load_setup(cfg_dir, opts.scenario, opts.vehicle or None, opts.overrides)
+            if not args.allow_infeasible:
+                setup.check_reference()
             if any(n.module == SIM_MODULE for n in nodes):   # and the simulator's car
                 from drift_sim.scenario import load_scenario
                 load_scenario(opts.scenario, list(opts.overrides), config=cfg_dir,

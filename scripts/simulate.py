@@ -43,12 +43,15 @@ def main(argv=None) -> int:
     parser.add_argument('--trace', help='write the time series here (.npz)')
     parser.add_argument('--stop-on-spin', action='store_true')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
+    parser.add_argument('--allow-infeasible', action='store_true',
+                        help='run a path that asks for a drift the car cannot hold')
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     try:
         out, trace = run_closed_loop(args.scenario, args.set, args.seed, args.controller,
                                      args.plant, args.config_dir, progress=not args.quiet,
-                                     stop_on_spin=args.stop_on_spin, vehicle=args.vehicle)
+                                     stop_on_spin=args.stop_on_spin, vehicle=args.vehicle,
+                                     refuse_infeasible=not args.allow_infeasible)
     except ParamError as err:
         print(f'simulate: {err}', file=sys.stderr)
         return 2

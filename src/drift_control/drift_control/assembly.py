@@ -91,6 +91,25 @@ class Setup:
         return Nmpc(self.vehicle, self.nmpc, self.mode if mode is None else mode,
                     mu=self.surface.mu, supervisor=self.supervisor if supervised else None)
 
+    def check_reference(self) -> None:
+        """ParamError (one line) when the path asks for a drift the car cannot hold
+        (``drift_control.feasibility``): before the car moves, not discovered as a spin."""
+        if self.path is None or self.eqmap is None:
+            return
+        from drift_control.feasibility import reference_problems
+        from drift_control.ocp import effective_bounds
+        problems = reference_problems(self.path, self.eqmap,
+                                      effective_bounds(self.vehicle, self.nmpc),
+                                      self.reference.radius_min, self.reference.radius_max)
+        if problems:
+            more = len(problems) - 1
+            raise ParamError(f'reference infeasible: path {self.path.name} asks '
+                             f'{self.vehicle_name} on {self.surface.name} for a drift it cannot '
+                             f'hold at {problems[0]}'
+                             + (f' (and {more} more stretch{"es" if more > 1 else ""})'
+                                if more else '')
+                             + '; --allow-infeasible runs it anyway')
+
     def build_selector(self) -> ReferenceSelector:
         """The reference selector on the scenario's path and map, at the scenario's start."""
         if self.path is None or self.eqmap is None:

@@ -19,6 +19,7 @@ from enum import IntEnum
 
 import numpy as np
 
+from drift_control.feasibility import equilibrium_problem
 from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
 from drift_control.ocp_solvers import make_solver, period_function
 from drift_control.pacing import PeriodGate
@@ -194,17 +195,11 @@ class Nmpc:
     def _infeasible(self, ref: Reference) -> str | None:
         """Why the reference asks what the car cannot do (steering past lock, torque past its
         limits, no forward speed), or None."""
-        b, tol = self.bounds, 1e-6
         for k, eq in enumerate((ref.target, *ref.horizon)):
-            where = 'target' if k == 0 else f'stage {k - 1}'
-            if abs(eq.delta) > b.delta_max + tol:
-                return (f'reference infeasible: {where} steering {eq.delta:.3f} rad beyond the '
-                        f'{b.delta_max:.3f} rad lock')
-            if not b.T_R_min - tol <= eq.T_R <= b.T_R_max + tol:
-                return (f'reference infeasible: {where} torque {eq.T_R:.0f} Nm outside '
-                        f'[{b.T_R_min:.0f}, {b.T_R_max:.0f}] Nm')
-            if not eq.V > 0.0:
-                return f'reference infeasible: {where} speed {eq.V:.2f} m/s'
+            problem = equilibrium_problem(eq, self.bounds)
+            if problem is not None:
+                where = 'target' if k == 0 else f'stage {k - 1}'
+                return f'reference infeasible: {where} {problem}'
         return None
 
     def _solve(self, state: VehicleState, ref: Reference, now: float) -> NmpcResult:

@@ -115,7 +115,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                     controller: str = 'nmpc', plant: str = 'double_track',
                     config: str | Path | None = None, progress: bool = False,
                     stop_on_spin: bool = False, supervised: bool = True,
-                    vehicle: str | None = None) -> tuple[dict, dict]:
+                    vehicle: str | None = None,
+                    refuse_infeasible: bool = False) -> tuple[dict, dict]:
     """Run a scenario's closed loop in this process; returns (metrics, time series).
 
     Parameters
@@ -134,9 +135,13 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
         controller does when nothing stops it (the paper's spin with a weak steering).
     vehicle : str, optional
         Overrides the scenario's vehicle (``config/vehicle/<name>.yaml``).
+    refuse_infeasible : bool
+        ParamError before the run when the path asks for a drift the car cannot hold.
     """
     cfg = Path(config) if config else config_dir()
     setup = load_setup(cfg, scenario, vehicle, overrides, seed)
+    if refuse_infeasible:
+        setup.check_reference()
     loaded = load_scenario(scenario, config=cfg, spec=setup.scenario)
     sc = loaded.scenario
     selector = setup.build_selector()

@@ -1,0 +1,68 @@
+"""Infeasible references are refused before the car moves, with where and why."""
+from types import SimpleNamespace
+
+import pytest
+
+from drift_control.assembly import load_setup
+from drift_control.feasibility import equilibrium_problem, reference_problems
+from drift_control.ocp import effective_bounds
+from drift_control.params import ParamError, config_dir, vehicle_names
+from drift_control.scenario import scenario_names
+
+CIRCLE = (config_dir() / 'paths' / 'circle_left_15.yaml').read_text()
+
+
+def _problems(setup):
+    return reference_problems(setup.path, setup.eqmap, effective_bounds(setup.vehicle, setup.nmpc),
+                              setup.reference.radius_min, setup.reference.radius_max)
+
+
+@pytest.mark.parametrize('vehicle', vehicle_names())
+def test_every_shipped_scenario_asks_for_drifts_the_car_can_hold(vehicle):
+    for name in scenario_names():
+        setup = load_setup(scenario=name, vehicle=vehicle)
+        assert _problems(setup) == [], (vehicle, name)
+        setup.check_reference()
+
+
+@pytest.mark.parametrize('beta_deg, refused', [(30.0, False), (40.0, True), (45.0, True)])
+def test_a_sideslip_beyond_the_maps_edge_on_the_15_m_circle_is_refused(tmp_path, beta_deg,
+                                                                       refused):
+    path = tmp_path / 'circle.yaml'
+    path.write_text(CIRCLE.replace('beta_deg: 30.0', f'beta_deg: {beta_deg}'))
+    setup = load_setup(scenario='steady_dry', vehicle='m3_competition', path_file=str(path))
+    problems = _problems(setup)
+    assert bool(problems) == refused
+    if not refused:
+        return
+    worst = problems[-1]
+    assert worst.beta_deg == pytest.approx(beta_deg) and worst.radius == pytest.approx(15.0)
+    assert 'no equilibrium above' in worst.why and 'steering lock' in worst.why
+    # it starts once the entry ramp passes the map's edge, and lasts to the end of the lap
+    assert 20.0 < worst.start < 65.0 and worst.end > setup.path.length
+    with pytest.raises(ParamError, match=r'reference infeasible: .*m3_competition on dry') as err:
+        setup.check_reference()
+    assert '\n' not in str(err.value) and '--allow-infeasible' in str(err.value)
+
+
+def test_equilibrium_problem_is_the_nmpcs_rule():
+    bounds = SimpleNamespace(delta_max=0.5, T_R_min=-2000.0, T_R_max=6000.0)
+    eq = SimpleNamespace(delta=-0.3, T_R=2000.0, V=9.0)
+    assert equilibrium_problem(eq, bounds) is None
+    assert 'beyond the 0.500 rad lock' in equilibrium_problem(
+        SimpleNamespace(delta=-0.6, T_R=2000.0, V=9.0), bounds)
+    assert 'outside [-2000, 6000] Nm' in equilibrium_problem(
+        SimpleNamespace(delta=-0.3, T_R=7000.0, V=9.0), bounds)
+    assert 'speed' in equilibrium_problem(SimpleNamespace(delta=0.0, T_R=0.0, V=0.0), bounds)
+
+
+def test_simulate_refuses_before_the_run_in_one_line(tmp_path, capsys):
+    from conftest import load_script
+    scenario = (config_dir() / 'scenarios' / 'steady_dry.yaml').read_text()
+    circle = tmp_path / 'c45.yaml'
+    circle.write_text(CIRCLE.replace('beta_deg: 30.0', 'beta_deg: 45.0'))
+    path = tmp_path / 'steady45.yaml'
+    path.write_text(scenario.replace('path: circle_left_15', f'path: {circle}'))
+    assert load_script('simulate').main(['--scenario', str(path), '--quiet']) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith('simulate: reference infeasible') and len(err.splitlines()) == 1
