@@ -12,8 +12,8 @@ from autosar_data.abstraction.communication import (
 from conftest import REPO, load_script
 from drift_control.params import ParamError
 from drift_vehicle_bridge.arxml import autosar_start, dbc_start, load_arxml
-from drift_vehicle_bridge.codec import COMMAND_SIGNALS, STATE_SIGNALS
-from drift_vehicle_bridge.description import load_description
+from drift_vehicle_bridge.description import COMMAND_SIGNALS, STATE_SIGNALS
+from drift_vehicle_bridge.codec import load_description
 from drift_vehicle_bridge.e2e import protection
 
 DBC = REPO / 'config' / 'can' / 'drift_vehicle.dbc'

@@ -12,7 +12,7 @@ import yaml
 from drift_control.params import ParamError, config_dir, load_vehicle, vehicle_names
 from drift_control.signals import Validity, VehicleState
 from drift_vehicle_bridge.codec import (COMMAND_FRAMES, STATE_SIGNALS, Codec, Fault, FrameError)
-from drift_vehicle_bridge.description import load_description
+from drift_vehicle_bridge.codec import load_description
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.monitor import StateMonitor
 from drift_vehicle_bridge.params import MonitorParams, load_bridge_params

@@ -20,8 +20,7 @@ from cantools.database.can import Message, Signal
 from cantools.database.conversion import BaseConversion
 
 from drift_control.params import ParamError
-from drift_vehicle_bridge.codec import COMMAND_SIGNALS, STATE_SIGNALS
-from drift_vehicle_bridge.description import Description, PduSpec
+from drift_vehicle_bridge.description import COMMAND_SIGNALS, STATE_SIGNALS, Description, PduSpec
 from drift_vehicle_bridge.e2e import PROFILES, E2EConfig, protection
 
 # autosar-data's DataIdMode (by name: its enum values are not hashable) -> E2EConfig's.

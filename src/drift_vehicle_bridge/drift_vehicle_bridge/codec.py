@@ -1,7 +1,7 @@
 """The codec: PDUs <-> VehicleState / Command signals, for any bus description, E2E protected.
 
 No bus and no ROS here. The PDUs, their bit layouts and their E2E profiles come from a
-``Description`` (a classic or CAN FD DBC, a FlexRay ARXML: ``description.load_description``);
+``Description`` (a classic or CAN FD DBC, a FlexRay ARXML: ``load_description``);
 cantools packs the signals and ``e2e`` writes and checks the profile's header. The signal names
 are the contract (``STATE_SIGNALS``, ``COMMAND_SIGNALS``), whatever PDU carries them.
 """
@@ -11,49 +11,17 @@ import math
 import os
 from dataclasses import dataclass
 from enum import Enum
+from pathlib import Path
 
 from drift_control.params import ParamError
-from drift_control.signals import Command, Mode, Validity, VehicleState
-from drift_vehicle_bridge.description import Description, PduSpec, load_description
+from drift_control.signals import Command, Mode, VehicleState
+from drift_vehicle_bridge.description import (CMD_STATUS, CMD_STEER, CMD_TORQUE, COMMAND_FRAMES,
+                                              COMMAND_SENDER, COMMAND_SIGNALS, STATE_SENDER,
+                                              STATE_SIGNALS, VALIDITY_SIGNALS, WHEELS,
+                                              Description, PduSpec)
 from drift_vehicle_bridge.e2e import Protection, protection
 from drift_vehicle_bridge.mode import BridgeMode
 from drift_vehicle_bridge.pdu import Pdu
-
-WHEELS = ('omega_FL', 'omega_FR', 'omega_RL', 'omega_RR')   # order of VehicleState.wheel_speeds
-
-# State signal -> VehicleState field (wheel speeds go to wheel_speeds[i]).
-STATE_SIGNALS: dict[str, str] = {
-    'vx': 'vx', 'vy': 'vy', 'V': 'V', 'r': 'r', 'beta': 'beta', 'ax': 'ax', 'ay': 'ay',
-    **{w: w for w in WHEELS}, 'delta': 'delta', 'steering_torque': 'steering_torque',
-    'drive_torque': 'drive_torque', 'brake_pedal': 'brake_pedal', 'x': 'x', 'y': 'y',
-    'yaw': 'yaw'}
-
-# Which signals each validity bit needs: the bit is set while every PDU carrying one is valid.
-VALIDITY_SIGNALS: dict[Validity, tuple[str, ...]] = {
-    Validity.V: ('V',),
-    Validity.VX_VY: ('vx', 'vy'),
-    Validity.BETA: ('beta',),
-    Validity.R: ('r',),
-    Validity.AX_AY: ('ax', 'ay'),
-    Validity.WHEEL_SPEEDS: WHEELS,
-    Validity.DELTA: ('delta',),
-    Validity.STEERING_TORQUE: ('steering_torque',),
-    Validity.DRIVE_TORQUE: ('drive_torque',),
-    Validity.BRAKE_PEDAL: ('brake_pedal',),
-    Validity.POSE: ('x', 'y', 'yaw'),
-}
-
-CMD_STEER = 'DS_CMD_STEER'
-CMD_TORQUE = 'DS_CMD_TORQUE'
-CMD_STATUS = 'DS_CMD_STATUS'
-COMMAND_SIGNALS: dict[str, tuple[str, ...]] = {
-    CMD_STEER: ('steer_request', 'delta_req', 'delta_rate_req'),
-    CMD_TORQUE: ('torque_request', 'torque_req'),
-    CMD_STATUS: ('bridge_mode', 'drop_reason'),
-}
-COMMAND_FRAMES = tuple(COMMAND_SIGNALS)
-STATE_SENDER, COMMAND_SENDER = 'GATEWAY', 'DRIFT_STACK'
-
 
 class Fault(str, Enum):
     """Why a received PDU was rejected (the keys of the fault counters)."""
@@ -253,6 +221,19 @@ class Codec:
                 for sig, field in self.state_frames[frame.name].items()}
 
 
+def load_description(path: str | os.PathLike) -> Description:
+    """Read a ``.dbc`` or ``.arxml`` file; ParamError (one line) when it cannot serve the codec."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == '.dbc':
+        from drift_vehicle_bridge.dbc import load_dbc
+        return load_dbc(path)
+    if suffix == '.arxml':           # autosar-data only where an ARXML is read
+        from drift_vehicle_bridge.arxml import load_arxml
+        return load_arxml(path)
+    raise ParamError(f'{path}: unknown bus description type {suffix!r} (.dbc or .arxml)')
+
+
 def signal_bits(signal) -> frozenset[int]:
     """Bit positions (byte * 8 + bit, LSB 0) a cantools signal occupies."""
     if signal.byte_order == 'little_endian':
@@ -301,6 +282,7 @@ def command_from_signals(status: dict, steer: dict | None, torque: dict | None,
     return None
 
 
-__all__ = ['COMMAND_FRAMES', 'COMMAND_SIGNALS', 'Codec', 'Fault', 'Frame', 'FrameError',
-           'STATE_SIGNALS', 'VALIDITY_SIGNALS', 'WHEELS', 'command_from_signals', 'signal_bits',
-           'state_from_fields', 'steer_signals', 'torque_signals']
+__all__ = ['CMD_STATUS', 'CMD_STEER', 'CMD_TORQUE', 'COMMAND_FRAMES', 'COMMAND_SIGNALS', 'Codec',
+           'Fault', 'Frame', 'FrameError', 'STATE_SIGNALS', 'VALIDITY_SIGNALS', 'WHEELS',
+           'command_from_signals', 'load_description', 'signal_bits', 'state_from_fields',
+           'steer_signals', 'torque_signals']

@@ -1,23 +1,51 @@
 """Bus descriptions: which PDUs the interface has, their bit layout and their E2E protection.
 
-A DBC (classic CAN or CAN FD) and a FlexRay ARXML describe the same interface; both load into a
-``Description`` that the one codec serves. The signal names are the contract, whatever PDU carries
-them (``codec.STATE_SIGNALS``); the command PDUs are always DS_CMD_STEER, DS_CMD_TORQUE and
-DS_CMD_STATUS.
+A DBC (classic CAN or CAN FD, ``dbc.py``) and a FlexRay ARXML (``arxml.py``) describe the same
+interface; both load into a ``Description`` that the one codec serves. The signal names are the
+contract, whatever PDU carries them (``STATE_SIGNALS``); the command PDUs are always
+DS_CMD_STEER, DS_CMD_TORQUE and DS_CMD_STATUS.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
-import cantools
-
-from drift_control.params import ParamError
+from drift_control.signals import Validity
 from drift_vehicle_bridge.e2e import E2EConfig
-from drift_vehicle_bridge.pdu import CAN_EFF_FLAG
 
-DEFAULT_PROFILE = 'P01'    # a DBC without an E2E_Profile attribute
+WHEELS = ('omega_FL', 'omega_FR', 'omega_RL', 'omega_RR')   # order of VehicleState.wheel_speeds
+
+# State signal -> VehicleState field (wheel speeds go to wheel_speeds[i]).
+STATE_SIGNALS: dict[str, str] = {
+    'vx': 'vx', 'vy': 'vy', 'V': 'V', 'r': 'r', 'beta': 'beta', 'ax': 'ax', 'ay': 'ay',
+    **{w: w for w in WHEELS}, 'delta': 'delta', 'steering_torque': 'steering_torque',
+    'drive_torque': 'drive_torque', 'brake_pedal': 'brake_pedal', 'x': 'x', 'y': 'y',
+    'yaw': 'yaw'}
+
+# Which signals each validity bit needs: the bit is set while every PDU carrying one is valid.
+VALIDITY_SIGNALS: dict[Validity, tuple[str, ...]] = {
+    Validity.V: ('V',),
+    Validity.VX_VY: ('vx', 'vy'),
+    Validity.BETA: ('beta',),
+    Validity.R: ('r',),
+    Validity.AX_AY: ('ax', 'ay'),
+    Validity.WHEEL_SPEEDS: WHEELS,
+    Validity.DELTA: ('delta',),
+    Validity.STEERING_TORQUE: ('steering_torque',),
+    Validity.DRIVE_TORQUE: ('drive_torque',),
+    Validity.BRAKE_PEDAL: ('brake_pedal',),
+    Validity.POSE: ('x', 'y', 'yaw'),
+}
+
+CMD_STEER = 'DS_CMD_STEER'
+CMD_TORQUE = 'DS_CMD_TORQUE'
+CMD_STATUS = 'DS_CMD_STATUS'
+COMMAND_SIGNALS: dict[str, tuple[str, ...]] = {
+    CMD_STEER: ('steer_request', 'delta_req', 'delta_rate_req'),
+    CMD_TORQUE: ('torque_request', 'torque_req'),
+    CMD_STATUS: ('bridge_mode', 'drop_reason'),
+}
+COMMAND_FRAMES = tuple(COMMAND_SIGNALS)
+STATE_SENDER, COMMAND_SENDER = 'GATEWAY', 'DRIFT_STACK'
 
 
 @dataclass(frozen=True)
@@ -66,54 +94,6 @@ class Description:
     pdus: tuple[PduSpec, ...]
 
 
-def load_description(path: str | os.PathLike) -> Description:
-    """Read a ``.dbc`` or ``.arxml`` file; ParamError (one line) when it cannot serve the codec."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == '.dbc':
-        return load_dbc(path)
-    if suffix == '.arxml':
-        from drift_vehicle_bridge.arxml import load_arxml
-        return load_arxml(path)
-    raise ParamError(f'{path}: unknown bus description type {suffix!r} (.dbc or .arxml)')
-
-
-def load_dbc(path: str | os.PathLike) -> Description:
-    """A DBC's messages as PDUs; E2E from the ``E2E_Profile`` / ``E2E_DataID`` attributes."""
-    try:
-        db = cantools.database.load_file(str(path), database_format='dbc', strict=True)
-    except (OSError, cantools.database.UnsupportedDatabaseFormatError) as err:
-        raise ParamError(f'{path}: cannot read the DBC: {_one_line(err)}') from None
-    pdus = []
-    for m in db.messages:
-        profile = str(_attribute(db, m, 'E2E_Profile', DEFAULT_PROFILE))
-        data_id = _attribute(db, m, 'E2E_DataID', 0)
-        cycle_ms = m.cycle_time or _attribute(db, m, 'GenMsgCycleTime', 0)
-        if not cycle_ms:
-            raise ParamError(f'{path}: {m.name} has no cycle time (GenMsgCycleTime)')
-        pdus.append(PduSpec(
-            name=m.name, id=m.frame_id | (CAN_EFF_FLAG if m.is_extended_frame else 0),
-            length=m.length, message=m,
-            e2e=E2EConfig(profile=profile, data_id=int(data_id),
-                          offset=int(_attribute(db, m, 'E2E_Offset', 0))),
-            senders=tuple(m.senders), cycle=cycle_ms / 1000.0, fd=bool(m.is_fd)))
-    kind = 'canfd' if any(p.fd for p in pdus) else 'can'
-    return Description(str(path), kind, tuple(pdus))
-
-
-def _attribute(db, message, name: str, default):
-    """A message attribute, else the DBC's default for it, else ``default``."""
-    attr = message.dbc.attributes.get(name) if message.dbc else None
-    if attr is not None:
-        return attr.value
-    definition = (db.dbc.attribute_definitions.get(name) if db.dbc else None)
-    if definition is not None and definition.default_value is not None:
-        return definition.default_value
-    return default
-
-
-def _one_line(err: Exception) -> str:
-    return ' '.join(str(err).split())
-
-
-__all__ = ['DEFAULT_PROFILE', 'Description', 'PduSpec', 'load_dbc', 'load_description']
+__all__ = ['CMD_STATUS', 'CMD_STEER', 'CMD_TORQUE', 'COMMAND_FRAMES', 'COMMAND_SENDER',
+           'COMMAND_SIGNALS', 'Description', 'PduSpec', 'STATE_SENDER', 'STATE_SIGNALS',
+           'VALIDITY_SIGNALS', 'WHEELS']
