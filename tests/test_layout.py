@@ -27,3 +27,17 @@ def test_there_are_core_modules_to_check():
 @pytest.mark.parametrize('path', CORE_FILES, ids=lambda p: str(p.relative_to(SRC)))
 def test_core_module_imports_no_ros(path):
     assert not imported_roots(path) & ROS_MODULES, f'{path} imports ROS outside nodes/'
+
+
+def test_node_processes_freeze_their_start_up_objects():
+    """A full garbage collection over a node's start-up objects pauses it for tens of ms (past
+    the bridge's 30 ms frame timeout): run_node collects once and freezes them."""
+    import gc
+    from drift_control.nodes.spin import settle_garbage_collector
+    before = gc.get_freeze_count()
+    try:
+        junk = [[{'k': i}] for i in range(1000)]
+        settle_garbage_collector()
+        assert gc.get_freeze_count() >= before + len(junk)
+    finally:
+        gc.unfreeze()
