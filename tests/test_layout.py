@@ -1,5 +1,6 @@
 """The codebase's own rules: algorithm modules never import ROS; nodes live under nodes/."""
 import ast
+import os
 from pathlib import Path
 
 import pytest
@@ -41,3 +42,18 @@ def test_node_processes_freeze_their_start_up_objects():
         assert gc.get_freeze_count() >= before + len(junk)
     finally:
         gc.unfreeze()
+
+
+def test_link_nodes_run_above_and_the_recorder_below_a_real_time_launch():
+    """Under ``chrt -r 10`` the bridge and a simulated car go to 20 (their 10 ms cycles are not
+    held up by an equal-priority burst), the recorder and the view leave real time."""
+    import subprocess
+    import sys
+    if subprocess.run(['chrt', '-r', '10', 'true'], capture_output=True).returncode != 0:
+        pytest.skip('real-time priority not allowed here')
+    code = ('import os; from drift_control.nodes.spin import raise_real_time, leave_real_time; '
+            'raise_real_time(); print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority); '
+            'leave_real_time(); print(os.sched_getscheduler(0))')
+    out = subprocess.run(['chrt', '-r', '10', sys.executable, '-c', code], capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == [str(os.SCHED_RR), '20', str(os.SCHED_OTHER)], out

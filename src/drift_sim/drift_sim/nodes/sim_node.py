@@ -14,7 +14,7 @@ from std_msgs.msg import Header, String
 
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import run_node
+from drift_control.nodes.spin import raise_real_time, run_node
 from drift_control.pacing import Pacer
 from drift_control.params import ParamError, config_dir, parse_overrides
 from drift_sim.lockstep import LockstepGate
@@ -86,6 +86,7 @@ class SimNode(Node):
             from drift_vehicle_bridge.params import load_bridge_params
             from drift_vehicle_bridge.vehicle_side import CarSide
             self._mode = 'realtime'
+            raise_real_time()   # it stands in for a car: its 10 ms cycle must not wait
             link = load_bridge_params(cfg, parse_overrides(link_set, 'sim.link_set'),
                                       loaded.scenario.vehicle)
             self._can = CanVehicle(self._sim, CarSide.open(link, cfg), can_hold)
@@ -125,7 +126,9 @@ class SimNode(Node):
     def _on_link_diag(self):
         """The car's end of the link: which requests it accepted, their rates and E2E states."""
         from drift_vehicle_bridge.nodes.convert import car_side_status
-        status = car_side_status(self._can.car.stats(), self._can.released, self._link_name)
+        status = car_side_status(self._can.car.stats(), self._can.released,
+                                 self._can.step_gap_max, self._link_name)
+        self._can.step_gap_max = 0.0    # each status: the longest gap since the last one
         self._diag_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now()
                                                              .to_msg()), status=[status]))
 

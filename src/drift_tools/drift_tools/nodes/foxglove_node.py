@@ -7,7 +7,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import run_node
+from drift_control.nodes.spin import leave_real_time, run_node
 from drift_control.params import ParamError, config_dir, default_vehicle, load_vehicle
 from drift_control.scenario import load_scenario_spec
 from drift_tools.car_scene import VIEW_TOPICS, CarScene, CarShape
@@ -28,6 +28,7 @@ class FoxgloveNode(Node):
 
     def __init__(self):
         super().__init__('view')
+        leave_real_time()   # a viewer never holds a core against the control loop
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         scenario = self.declare_parameter('scenario', '').value
         vehicle = self.declare_parameter('vehicle', '').value     # '' = the scenario's

@@ -12,7 +12,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Header, String
 
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import run_node
+from drift_control.nodes.spin import leave_real_time, run_node
 from drift_control.params import ParamError, config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
 from drift_tools.disk import MIB, DiskLevel, DiskLimits, DiskWatch
@@ -52,6 +52,7 @@ class RecorderNode(Node):
 
     def __init__(self):
         super().__init__('recorder')
+        leave_real_time()   # never hold a core against the control loop (a launch under chrt)
         self.declare_parameter('config_dir', str(config_dir()))
         self.declare_parameter('scenario', '')
         bag_dir = self.declare_parameter('bag_dir', '').value

@@ -10,7 +10,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import run_node
+from drift_control.nodes.spin import raise_real_time, run_node
 from drift_control.ocp import load_nmpc_params
 from drift_control.params import config_dir, load_vehicle, parse_overrides
 from drift_control.plausibility import InputChecker
@@ -29,6 +29,7 @@ class BridgeNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('vehicle_bridge', **kwargs)
+        raise_real_time()   # its 10 ms cycle before the controller's bursts (a launch under chrt)
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         scenario = self.declare_parameter('scenario', '').value
         vehicle = self.declare_parameter('vehicle', '').value   # limits: '' = the scenario's car

@@ -66,13 +66,15 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     return DiagnosticArray(header=Header(stamp=stamp), status=[status])
 
 
-def car_side_status(stats: dict, released: int, hardware_id: str) -> DiagnosticStatus:
+def car_side_status(stats: dict, released: int, step_gap_max: float,
+                    hardware_id: str) -> DiagnosticStatus:
     """The simulated car's end of the link (``CarSide.stats``): what it accepted of the requests."""
     faulty = stats['faults'] or stats['errors']
     status = DiagnosticStatus(name='car side', hardware_id=hardware_id,
                               level=DiagnosticStatus.WARN if faulty else DiagnosticStatus.OK,
                               message='request faults' if faulty else 'ok')
-    values = {'sent': stats['sent'], 'released_steps': released, 'foreign': stats['foreign']}
+    values = {'sent': stats['sent'], 'released_steps': released, 'foreign': stats['foreign'],
+              'step_gap_max_ms': f'{1e3 * step_gap_max:.1f}'}
     values.update({f'rx/{k}': v for k, v in stats['rx'].items()})
     values.update({f'rx_rate/{k}': f'{v:.1f}' for k, v in stats['rx_rate'].items()})
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
