@@ -298,3 +298,28 @@ def test_car_side_rejects_corrupted_command_frames(rig):
     assert recovered[-1] is not None and recovered[-1].delta != pytest.approx(0.9), \
         'the E2E state machine is VALID again once the error has left its window'
     assert mode == BridgeMode.ACTIVE_FULL
+
+
+def test_the_backlog_before_the_first_cycle_is_dropped_and_a_failing_link_does_not_hang_it(codec):
+    from drift_vehicle_bridge.pdu import Pdu
+
+    class Queue:
+        def __init__(self, items):
+            self.items = list(items)
+
+        def recv(self, timeout=0.0):
+            item = self.items.pop(0) if self.items else None
+            if isinstance(item, Exception):
+                raise item
+            return item
+
+    params = load_bridge_params()
+    backlog = [Pdu(0x110, bytes(8))] * 5 + [OSError('bad datagram')] + [Pdu(0x111, bytes(8))]
+    gw = Gateway(Queue(backlog), codec, params)
+    assert gw.discard_backlog() == 7 and gw.stats()['discarded_at_start'] == 7
+
+    class Broken:
+        def recv(self, timeout=0.0):
+            raise OSError('socket closed')
+
+    assert Gateway(Broken(), codec, params).discard_backlog() > 0     # bounded, returns

@@ -107,12 +107,12 @@ class Gateway:
         jumps of every PDU.
         """
         n = 0
-        while self.transport is not None and n < 100 * MAX_FRAMES_PER_CYCLE:
+        for _ in range(100 * MAX_FRAMES_PER_CYCLE if self.transport is not None else 0):
             try:
                 if self.transport.recv(timeout=0.0) is None:
                     break
-            except (can.CanError, OSError, ValueError):
-                continue
+            except (can.CanError, OSError, ValueError):   # a bad datagram: also history
+                pass
             n += 1
         self.discarded_at_start += n
         return n
