@@ -97,6 +97,11 @@ class FrameChecker:
         return {n: (self.accepted[n] - 1) / (last - first)
                 for n, (first, last) in self._stamps.items() if last > first}
 
+    def last_stamps(self) -> dict[str, float]:
+        """Reception stamp of each PDU's latest accepted one [s]: with ``accepted`` two
+        snapshots give the rate between them, start-up left out."""
+        return {n: last for n, (_, last) in self._stamps.items()}
+
     @property
     def rejected(self) -> int:
         return sum(self.faults.values())

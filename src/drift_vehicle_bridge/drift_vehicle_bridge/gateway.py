@@ -145,6 +145,7 @@ class Gateway:
                 'drops': dict(self.modes.drops), 'implausible': self.modes.implausible or '',
                 'validity': self.state.validity if self.state else 0,
                 'rx': dict(checker.accepted), 'rx_rate': checker.rates(),
+                'rx_stamp': checker.last_stamps(),
                 'faults': dict(checker.faults),
                 'e2e': checker.states(), 'foreign': checker.foreign,
                 'discarded_at_start': self.discarded_at_start, 'tx': dict(self.sent),

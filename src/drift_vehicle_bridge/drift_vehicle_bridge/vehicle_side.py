@@ -121,6 +121,7 @@ class CarSide:
         """Counters of the car's end for diagnostics (totals since start)."""
         checker = self.checker
         return {'rx': dict(checker.accepted), 'rx_rate': checker.rates(),
+                'rx_stamp': checker.last_stamps(),
                 'faults': dict(checker.faults), 'e2e': checker.states(),
                 'foreign': checker.foreign, 'sent': self.frames_sent,
                 'errors': dict(getattr(self.transport, 'errors', {}))}

@@ -59,6 +59,8 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
     values.update({f'e2e/{k}': v for k, v in stats.get('e2e', {}).items()})
     values.update({f'rx_rate/{k}': f'{v:.1f}' for k, v in stats.get('rx_rate', {}).items()})
+    values.update({f'rx/{k}': v for k, v in stats['rx'].items()})
+    values.update({f'rx_stamp/{k}': f'{v:.6f}' for k, v in stats.get('rx_stamp', {}).items()})
     values.update({f'drops/{k}': v for k, v in stats.get('drops', {}).items()})
     values.update({f'tx/{k}': v for k, v in stats['tx'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
@@ -77,6 +79,7 @@ def car_side_status(stats: dict, released: int, step_gap_max: float,
               'step_gap_max_ms': f'{1e3 * step_gap_max:.1f}'}
     values.update({f'rx/{k}': v for k, v in stats['rx'].items()})
     values.update({f'rx_rate/{k}': f'{v:.1f}' for k, v in stats['rx_rate'].items()})
+    values.update({f'rx_stamp/{k}': f'{v:.6f}' for k, v in stats['rx_stamp'].items()})
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
     values.update({f'e2e/{k}': v for k, v in stats['e2e'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
