@@ -395,3 +395,35 @@ def test_an_unwritable_bag_or_an_empty_metadata_file_is_one_line(capsys, tmp_pat
     (tmp_path / 'metadata.yaml').write_text('')
     with pytest.raises(ValueError, match='not a rosbag2 metadata file'):
         bag_info(tmp_path)
+
+
+def test_the_period_gate_takes_every_second_jittered_state():
+    # real-time states at 100 Hz, stamps +-2 ms: a state a little early still opens its
+    # period (with a 1 ms tolerance, 4 % of the solves waited for the next state: 30 ms gaps)
+    rng = np.random.default_rng(3)
+    stamps = np.arange(2000) * 0.01 + rng.uniform(-0.002, 0.002, 2000)
+    gate, fired = PeriodGate(TS), []
+    for stamp in stamps:
+        if gate.due(stamp, clock=stamp):
+            gate.fired(stamp)
+            fired.append(stamp)
+    gaps = np.diff(fired)
+    assert len(fired) == 1000 and gaps.max() < 0.027 and gaps.min() > 0.013
+
+
+def test_the_nmpc_trigger_takes_the_phase_of_the_reference_node():
+    # the reference node serves the odd states; the NMPC starts on an even one (no reference
+    # yet), waits out one reference_wait on the next even one, then solves on the odd states
+    trig = LockstepTrigger(TS, reference_wait=0.005)
+    solves, waited = [], 0
+    for k in range(40):
+        t = k * 0.01
+        ready = trig.on_state(t, wall=t)
+        if k % 2:
+            ready = trig.on_reference(t) or ready
+        if not ready and trig.poll(t + 0.006):
+            ready, waited = True, waited + 1
+        if ready:
+            solves.append(round(trig.fired() / 0.01))
+    assert waited == 2 and solves[:2] == [0, 2]
+    assert solves[2:] == list(range(3, 40, 2)), 'every odd state, with its reference'

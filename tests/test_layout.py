@@ -51,9 +51,13 @@ def test_link_nodes_run_above_and_the_recorder_below_a_real_time_launch():
     import sys
     if subprocess.run(['chrt', '-r', '10', 'true'], capture_output=True).returncode != 0:
         pytest.skip('real-time priority not allowed here')
-    code = ('import os; from drift_control.nodes.spin import raise_real_time, leave_real_time; '
+    code = ('import os, threading; '
+            'from drift_control.nodes.spin import raise_real_time, leave_real_time; '
             'raise_real_time(); print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority); '
-            'leave_real_time(); print(os.sched_getscheduler(0))')
+            'go = threading.Event(); t = threading.Thread(target=go.wait); t.start(); '
+            'leave_real_time(); print(os.sched_getscheduler(0), os.sched_getscheduler(t.native_id)); '
+            'go.set()')
     out = subprocess.run(['chrt', '-r', '10', sys.executable, '-c', code], capture_output=True,
                          text=True, check=True).stdout.split()
-    assert out == [str(os.SCHED_RR), '20', str(os.SCHED_OTHER)], out
+    # a thread started before (the middleware's) leaves real time too
+    assert out == [str(os.SCHED_RR), '20', str(os.SCHED_OTHER), str(os.SCHED_OTHER)], out

@@ -397,9 +397,10 @@ class Nmpc:
 class LockstepTrigger:
     """When to solve if states, not a timer, drive the NMPC (the simulator's lock-step mode).
 
-    Once per ``period`` of state time: at the first state stamped at or after the due time, as
-    soon as the reference computed for that state is in, or ``reference_wait`` (wall clock) later
-    with the latest reference, so a missing reference never stalls the loop. With
+    Once per ``period`` of state time (``PeriodGate``): as soon as the reference computed for
+    the state that opens the period is in, or ``reference_wait`` (wall clock) later with the
+    latest reference, so a missing reference never stalls the loop; a reference node serving
+    other states than ours sets the phase from then on. With
     ``first_reference`` the first solve waits for a reference however long it takes: in sim time
     the reference node may still be discovering us (~2.5 s), and the simulator, which waits for
     the command, bounds that wait itself (its startup timeout) - the run then starts the same way
@@ -437,10 +438,19 @@ class LockstepTrigger:
             return False
         return self._pending is not None and wall - self._pending[1] >= self.reference_wait
 
+    @property
+    def pending(self) -> bool:
+        """Whether a due state waits for its reference."""
+        return self._pending is not None
+
     def fired(self) -> float:
         """The solve for the pending state is done; returns that state's stamp."""
-        stamp = self._pending[0]
+        stamp, before = self._pending[0], self.gate.last
         self.gate.fired(stamp)
+        if not self._ready() and before < self._ref_stamp < stamp - self.EPS:
+            # the reference node serves the states in between (it started on another one, or
+            # lost one): take its phase, at the cost of one short period
+            self.gate.fired(self._ref_stamp)
         self._pending = None
         return stamp
 

@@ -58,8 +58,11 @@ class NmpcNode(Node):
         self.create_subscription(DriftReference, 'drift/reference', self._on_ref, 10)
         if self._trigger is None:
             self.create_timer(params.Ts, self._on_tick)   # node clock: honours use_sim_time
-        else:   # wall clock: sim time stands still while the simulator waits for us
-            self.create_timer(0.002, self._poll, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        else:   # wall clock: sim time stands still while the simulator waits for us; started
+            # by a state that waits for its reference (a polling timer costs the node ~10 % CPU)
+            self._wait = self.create_timer(wait, self._poll,
+                                           clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._wait.cancel()
         self.create_timer(1.0, self._publish_diagnostics)
         lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} '
@@ -74,6 +77,8 @@ class NmpcNode(Node):
         if self._trigger and self._trigger.on_state(state.stamp, time.monotonic(),
                                                     self._clock_s()):
             self._on_tick()
+        elif self._trigger and self._trigger.pending and self._wait.is_canceled():
+            self._wait.reset()
 
     def _on_ref(self, msg):
         ref = convert.decode(convert.reference_from_msg, msg, self.get_logger())
@@ -89,6 +94,8 @@ class NmpcNode(Node):
     def _poll(self):
         if self._trigger.poll(time.monotonic()):
             self._on_tick()
+        if not self._trigger.pending:
+            self._wait.cancel()
 
     def _on_tick(self):
         now = self.get_clock().now()
@@ -96,6 +103,7 @@ class NmpcNode(Node):
             stamp = self._trigger.fired()   # refuses states further ahead of the clock)
             if stamp > now.nanoseconds * 1e-9:
                 now = Time(nanoseconds=int(round(stamp * 1e9)), clock_type=now.clock_type)
+            self._wait.cancel()
         result = self._nmpc.step(self._state, self._ref, now.nanoseconds * 1e-9)
         self._cmd_pub.publish(convert.command_to_msg(result.command, now))
         self._status_pub.publish(convert.status_to_msg(result, now))

@@ -78,14 +78,28 @@ def leave_real_time() -> bool:
     """Run this process at normal priority if it was started at a real-time one (a launch
     under ``chrt``): for the nodes no control loop waits on (the recorder, the live view). A
     real-time process that compresses a chunk holds a core as long as it likes against the
-    simulator and the bridge at the same priority. True if the priority was dropped."""
+    simulator and the bridge at the same priority. Every thread leaves, the middleware's too
+    (they exist once the node does, and take each message of every topic the recorder records).
+    True if the priority was dropped."""
     try:
-        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-            return True
+        if os.sched_getscheduler(0) not in (os.SCHED_FIFO, os.SCHED_RR):
+            return False
+        for tid in [0, *_threads()]:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except ProcessLookupError:   # a thread that ended meanwhile
+                pass
+        return True
     except (AttributeError, OSError):    # no such call here, or not allowed: leave it
-        pass
-    return False
+        return False
+
+
+def _threads() -> list[int]:
+    """This process's thread IDs (Linux), [] where there is no /proc."""
+    try:
+        return [int(t) for t in os.listdir('/proc/self/task')]
+    except OSError:
+        return []
 
 
 def raise_real_time(by: int = 10) -> bool:
