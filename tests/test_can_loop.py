@@ -12,6 +12,7 @@ and a drop to OFF after having been ACTIVE stays latched.
 import math
 import os
 import subprocess
+import threading
 import time
 from dataclasses import replace
 from types import SimpleNamespace
@@ -30,10 +31,12 @@ from test_bridge_udp import NETNS_REASON
 
 LINKS = {'can': ('sim_can', 'can/drift_vehicle.dbc', 110),         # graph, description, domain
          'flexray': ('sim_flexray', 'flexray/drift_vehicle.arxml', 111)}
-RUN_S = 16.0                    # wall-clock run length [s]
+RUN_S = 12.0                    # scenario time, from the bridge's first request on [s]
+WALL_MAX_S = 40.0               # the whole launch, start-up included, at most [s]
 SCENARIO = 'drift_hold_dry'     # handed over in an established 30 deg drift (see its yaml)
 DRIFT_DEG, SPIN_DEG = 20.0, 75.0
 STALL_S = load_bridge_params().monitor.frame_timeout   # a longer simulator stall drops the bridge
+STEAL_MS = 40.0   # CPU time the hypervisor took within 100 ms (both CPUs) that stalls the loop
 
 
 # ---------------------------------------------------------------- auto_arm (fast, no ROS)
@@ -124,6 +127,61 @@ def _bridge_diagnostics(messages, name='vehicle_bridge: CAN'):   # not its 'reco
     return out
 
 
+class StealMeter:
+    """CPU time the hypervisor takes from this virtual machine (``steal`` in /proc/stat),
+    sampled every 5 ms while a run goes. On these shared machines it comes in bursts: 40-90 ms
+    of the two CPUs' time within 100 ms stalls every node at once, whatever its priority, and
+    the bridge's 30 ms frame timeout or 60 ms heartbeat trips, as it must."""
+
+    PERIOD = 0.005
+
+    def __init__(self):
+        self.samples: list[tuple[float, int]] = []   # (time.time(), steal summed over CPUs)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._tick_ms = 1e3 / os.sysconf('SC_CLK_TCK')
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self):
+        while not self._stop.is_set():
+            try:
+                with open('/proc/stat') as f:
+                    total = int(f.readline().split()[8])   # the 'cpu' line: all CPUs
+            except (OSError, IndexError, ValueError):      # no /proc or no steal column
+                return
+            self.samples.append((time.time(), total))
+            self._stop.wait(self.PERIOD)
+
+    def worst(self, start: float, end: float, window: float = 0.1) -> float:
+        """Most CPU time [ms] stolen within ``window`` [s] anywhere in [start, end]."""
+        t = np.array([s[0] for s in self.samples])
+        v = np.array([s[1] for s in self.samples])
+        best = 0
+        for i in np.flatnonzero((t >= start) & (t <= end)):
+            j = min(np.searchsorted(t, t[i] + window), len(v) - 1)
+            best = max(best, v[j] - v[i])
+        return best * self._tick_ms
+
+
+def _drop_windows(diags) -> dict[str, tuple[float, float]]:
+    """Reason of each drop out of an active mode -> the span between the two diagnostics it
+    fell between (stamps as recorded)."""
+    out, before = {}, set()
+    for k, d in enumerate(diags):
+        now = {key.split('/')[-1] for key in d if key.startswith('drops/ACTIVE_')}
+        for reason in now - before:
+            out[reason] = (diags[k - 1]['_t'] if k else d['_t'] - 1.0, d['_t'])
+        before = now
+    return out
+
+
 def _warm_nmpc_codegen():
     """Build the NMPC once here: a fresh checkout compiles its C code (.codegen/) on first use,
     which must not happen inside the real-time run while the simulated car coasts."""
@@ -148,7 +206,8 @@ def _realtime_prefix() -> list[str]:
 
 @pytest.fixture(scope='module', params=list(LINKS))
 def can_loop(request, tmp_path_factory):
-    """One run of the link's graph (RUN_S of wall time), recorded and read back."""
+    """One run of the link's graph (RUN_S of the scenario once the bridge engaged the car:
+    start-up takes 3-5 s, more on a loaded machine), recorded and read back."""
     if NETNS_REASON is not None:
         pytest.skip(NETNS_REASON)
     graph, description, domain_id = LINKS[request.param]
@@ -160,12 +219,12 @@ def can_loop(request, tmp_path_factory):
     for attempt in (1, 2):
         bag = tmp_path_factory.mktemp('can_loop') / 'bag'
         t0 = time.monotonic()
-        proc = subprocess.run(
-            [*_realtime_prefix(), str(REPO / 'scripts' / 'run_in_netns.sh'), '--duration',
-             str(RUN_S), '--scenario', SCENARIO, '--bag', str(bag), '--domain-id', str(domain_id),
-             '--graph', graph,
-             '--kill-timeout', '5', '--no-summary'],
-            env={**os.environ, 'PYTHON': PYTHON}, capture_output=True, text=True, timeout=60)
+        with StealMeter() as steal:
+            proc = subprocess.run(
+                [*_realtime_prefix(), str(REPO / 'scripts' / 'run_in_netns.sh'), '--duration',
+                 str(WALL_MAX_S), '--sim-duration', str(RUN_S), '--scenario', SCENARIO, '--bag', str(bag), '--domain-id',
+                 str(domain_id), '--graph', graph, '--kill-timeout', '5', '--no-summary'],
+                env={**os.environ, 'PYTHON': PYTHON}, capture_output=True, text=True, timeout=60)
         wall = time.monotonic() - t0
         assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
         messages = read_bag(bag)
@@ -175,13 +234,20 @@ def can_loop(request, tmp_path_factory):
         # the simulated car's own longest wall-clock gap between two steps, after its start-up
         # second (the stamps of a late step's catch-up hide it)
         stall = max((float(d['step_gap_max_ms']) for d in car[1:]), default=0.0) / 1e3
-        # a simulated car descheduled past the bridge's 30 ms frame timeout drops the bridge to
-        # OFF, as it must on a car; that run says nothing about the loop: run once more (printed)
-        if stall <= STALL_S or attempt == 2:
+        # the car ends the run after RUN_S: the bridge's diagnostics after its last step see
+        # the state PDUs stop, as they must, and are left out
+        diags = [d for d in _bridge_diagnostics(messages) if d['_t'] <= run.t0 + t[-1]]
+        # CPU time the machine's hypervisor took around each drop out of ACTIVE [ms]
+        stolen = {r: steal.worst(a - 0.1, b) for r, (a, b) in _drop_windows(diags).items()}
+        # a simulated car descheduled past the bridge's 30 ms frame timeout, or a machine whose
+        # CPUs were taken from it, drops the bridge to OFF, as it must on a car; that run says
+        # nothing about the loop: run once more (printed)
+        machine = {r: ms for r, ms in stolen.items() if ms >= STEAL_MS}
+        if (stall <= STALL_S and not machine) or attempt == 2:
             break
-        print(f'{graph} run {attempt}: the simulated car stalled {1e3 * stall:.0f} ms '
-              f'(machine load); running again')
-    diags = _bridge_diagnostics(messages)
+        print(f'{graph} run {attempt}: the simulated car stalled {1e3 * stall:.0f} ms, drops '
+              f'where the machine took the CPUs: {machine} ms (of {STEAL_MS:g} ms in 100 ms); '
+              f'running again')
     for d in diags + car:
         d['_t'] -= run.t0
     m = run_metrics(run)
@@ -193,7 +259,7 @@ def can_loop(request, tmp_path_factory):
     from drift_control.params import config_dir
     codec = Codec.load(config_dir() / description)
     return SimpleNamespace(run=run, metrics=m, diags=diags, car=car, wall=wall, timing=timing,
-                           link=request.param, codec=codec, stall=stall)
+                           link=request.param, codec=codec, stall=stall, stolen=stolen)
 
 
 def _stamped_rates(first: dict, last: dict, names) -> dict[str, float]:
@@ -217,8 +283,8 @@ def test_can_loop_bus_and_bridge(can_loop):
     plant; any drop out of ACTIVE has its cause."""
     run, diags = can_loop.run, can_loop.diags
     truth, t = run.truth, run.truth['t']
-    assert can_loop.wall < 40.0, f'the CAN loop run took {can_loop.wall:.1f} s'
-    assert len(diags) >= RUN_S - 4, f'{len(diags)} bridge diagnostics'
+    assert can_loop.wall < WALL_MAX_S - 1.0, f'the simulated car did not end the run: {can_loop.wall:.1f} s'
+    assert len(diags) >= RUN_S - 1, f'{len(diags)} bridge diagnostics'
     assert (len(t) - 1) / (t[-1] - t[0]) > 95.0, can_loop.timing
 
     faults = {k: v for d in diags for k, v in d.items() if k.startswith(('rx_fault/', 'error/'))}
@@ -240,7 +306,7 @@ def test_can_loop_bus_and_bridge(can_loop):
     # the car's end checks every request PDU the same way: nothing rejected, all VALID, 100 Hz
     from drift_vehicle_bridge.codec import COMMAND_FRAMES
     car = can_loop.car
-    assert len(car) >= RUN_S - 4, f'{len(car)} car-side diagnostics'
+    assert len(car) >= RUN_S, f'{len(car)} car-side diagnostics'
     car_faults = {k: v for d in car for k, v in d.items() if k.startswith(('rx_fault/', 'error/'))}
     assert car_faults == {}, f'request PDUs rejected at the car: {car_faults}'
     assert not any(k.startswith('e2e/') for k in car[-1]), f'car side: {car[-1]}'
@@ -270,15 +336,19 @@ def test_can_loop_bus_and_bridge(can_loop):
     delta_err = np.degrees(np.abs(truth['delta'] - resample(run.command, t, 'delta')))[on]
     assert np.median(delta_err) < 1.5, f'steering off the request by {np.median(delta_err):.2f} deg'
 
-    # A drop to OFF out of ACTIVE must have its cause in the run: the car left the envelope, or
-    # the simulator stalled longer than the frame timeout. Anything else is a bridge or bus fault.
+    # A drop to OFF out of ACTIVE must have its cause in the run: the car left the envelope, the
+    # simulator stalled longer than the frame timeout, or the machine's CPUs were taken from it
+    # there. Anything else is a bridge, bus or controller fault.
     reasons = set(_active_drops(diags))
     env = load_bridge_params().mode.active_envelope
     outside = ~((truth['V'] >= env.V_min) & (truth['V'] <= env.V_max)
                 & (np.abs(truth['beta']) <= env.beta_max) & (np.abs(truth['r']) <= env.r_max))
-    explained = {'ENVELOPE': bool(outside.any()), 'STATE_INVALID': can_loop.stall > STALL_S}
+    machine = {r for r, ms in can_loop.stolen.items() if ms >= STEAL_MS}
+    explained = {'ENVELOPE': bool(outside.any()),
+                 'STATE_INVALID': can_loop.stall > STALL_S or 'STATE_INVALID' in machine,
+                 'HEARTBEAT': 'HEARTBEAT' in machine}
     assert all(explained.get(r, False) for r in reasons), \
-        f'unexplained drop to OFF: {reasons}; {can_loop.timing}'
+        f'unexplained drop to OFF: {reasons}; {can_loop.timing}; stolen: {can_loop.stolen} ms'
 
 
 @pytest.mark.ros
@@ -315,6 +385,11 @@ def test_can_loop_holds_the_drift(can_loop):
                f'{can_loop.timing}')
     print(f'{can_loop.link} loop drift:', summary)
     assert beta_deg[t < 1.0].min() > 20.0, f'starts in the drift; {summary}'
+    machine = {r: ms for r, ms in can_loop.stolen.items() if ms >= STEAL_MS}
+    if drops and set(drops) <= set(machine):
+        # twice in a row (the fixture ran again): the loop could not be judged on this machine
+        pytest.skip(f'the machine took {machine} ms of CPU within 100 ms where the bridge '
+                    f'dropped, in both runs; {summary}')
     assert not drops, summary
     assert held > 8.0, summary
     assert beta_deg.max() < SPIN_DEG and not m['spun'], summary
@@ -325,7 +400,9 @@ def test_can_loop_holds_the_drift(can_loop):
     assert np.degrees(np.mean(truth['delta'][steady])) < -10.0, summary
     assert np.mean(truth['drive_torque'][steady]) > 500.0, summary
     # once running the NMPC never falls back; a reference late by a process schedule (real time,
-    # a loaded machine) is bridged by the shifted plan, as designed, and must stay rare
-    status = run.status['status'][run.status['t'] > 0.5]
+    # a loaded machine) is bridged by the shifted plan, as designed, and must stay rare; after the
+    # car ended the run, the states stop and the NMPC says so (stale), as it must
+    st = run.status['t']
+    status = run.status['status'][(st > 0.5) & (st <= t[-1])]
     assert np.all(status <= 1) and np.mean(status == 1) < 0.01, \
         f'NMPC statuses once running: {np.bincount(status.astype(int)).tolist()}'

@@ -45,19 +45,45 @@ def test_node_processes_freeze_their_start_up_objects():
 
 
 def test_link_nodes_run_above_and_the_recorder_below_a_real_time_launch():
-    """Under ``chrt -r 10`` the bridge and a simulated car go to 20 (their 10 ms cycles are not
-    held up by an equal-priority burst), the recorder and the view leave real time."""
+    """Under ``chrt -r 10`` the launcher drops to normal priority and hands 10 to its nodes: the
+    bridge and a simulated car take real time at 20 after their start-up (the middleware's
+    threads too), the controller's nodes at 10; the recorder and the view stay at normal
+    priority, threads that exist already (the middleware's) included."""
     import subprocess
     import sys
     if subprocess.run(['chrt', '-r', '10', 'true'], capture_output=True).returncode != 0:
         pytest.skip('real-time priority not allowed here')
-    code = ('import os, threading; '
-            'from drift_control.nodes.spin import raise_real_time, leave_real_time; '
-            'raise_real_time(); print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority); '
+    node = ('import os, threading; from drift_control.nodes import priority as p; '
             'go = threading.Event(); t = threading.Thread(target=go.wait); t.start(); '
-            'leave_real_time(); print(os.sched_getscheduler(0), os.sched_getscheduler(t.native_id)); '
-            'go.set()')
-    out = subprocess.run(['chrt', '-r', '10', sys.executable, '-c', code], capture_output=True,
-                         text=True, check=True).stdout.split()
-    # a thread started before (the middleware's) leaves real time too
-    assert out == [str(os.SCHED_RR), '20', str(os.SCHED_OTHER), str(os.SCHED_OTHER)], out
+            'print(os.sched_getscheduler(0), p.launch_priority()); '
+            'p.raise_real_time(); print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, '
+            'os.sched_getparam(t.native_id).sched_priority); '
+            'p.leave_real_time(5); print(os.sched_getscheduler(t.native_id), '
+            'os.getpriority(os.PRIO_PROCESS, t.native_id)); go.set()')
+    launcher = ('import os, subprocess, sys; '
+                'from drift_control.nodes.priority import leave_launch_real_time; '
+                'env = leave_launch_real_time(); print(os.sched_getscheduler(0), env); '
+                f'sys.stdout.flush(); subprocess.run([sys.executable, "-c", {node!r}], '
+                'env={**os.environ, **env}, check=True)')
+    out = subprocess.run(['chrt', '-r', '10', sys.executable, '-c', launcher],
+                         capture_output=True, text=True, check=True).stdout.splitlines()
+    other, rr = str(os.SCHED_OTHER), str(os.SCHED_RR)
+    assert out[0] == f"{other} {{'DRIFT_LAUNCH_RT_PRIORITY': '10'}}", out
+    assert out[1] == f'{other} 10', "the node starts at normal priority, knows the launch's"
+    assert out[2] == f'{rr} 20 20', 'link cycle at 20, the threads that exist too'
+    assert out[3] == f'{other} 5', 'off real time at the nice given, every thread'
+
+
+def test_priorities_do_not_change_outside_a_real_time_launch():
+    from drift_control.nodes import priority
+    env = dict(os.environ)
+    os.environ.pop(priority.LAUNCH_RT_ENV, None)
+    try:
+        if priority.real_time_priority() is not None:
+            pytest.skip('this test process runs at real-time priority')
+        assert priority.leave_launch_real_time() == {}
+        assert not priority.raise_real_time() and not priority.leave_real_time(-10)
+        assert os.sched_getscheduler(0) == os.SCHED_OTHER
+    finally:
+        os.environ.clear()
+        os.environ.update(env)

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import signal
 import subprocess
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
+
+from drift_control.nodes.priority import leave_launch_real_time
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +91,9 @@ class Launcher:
         self._stop_reason = 'signal'
         self._kill_now = False           # a second Ctrl-C: do not wait for clean exits
         self.procs: list[Proc] = []
+        # under chrt: the launcher and its nodes start at normal priority; each node learns the
+        # launch's real-time priority from its environment (drift_control.nodes.priority)
+        self._priority_env = leave_launch_real_time()
 
     # --- output ---------------------------------------------------------------------------
     def _prefix(self, name: str, index: int, width: int) -> str:
@@ -126,6 +132,8 @@ class Launcher:
         keeps publishing into the next run. A node that is not ``critical`` (the recorder on a
         car) may die without stopping the others.
         """
+        if self._priority_env:
+            env = {**(os.environ if env is None else env), **self._priority_env}
         popen = subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                  stdin=subprocess.DEVNULL, start_new_session=True,
                                  preexec_fn=_term_with_parent)

@@ -14,6 +14,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from drift_control.assembly import load_setup
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
+from drift_control.nodes.priority import raise_real_time
+from drift_control.nodes.qos import loop_writer_qos
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import PeriodGate
 from drift_control.params import ParamError, config_dir
@@ -42,7 +44,8 @@ class ReferenceNode(Node):
         self._last_ref = None
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
+        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference',
+                                              loop_writer_qos(1.0 / params.period))
         self.create_publisher(PathMsg, 'drift/path', latched).publish(
             convert.path_to_msg(path, self.get_clock().now()))
         if trigger == 'state':   # every state counts: a deeper queue, and no timer
@@ -53,6 +56,7 @@ class ReferenceNode(Node):
             self.create_subscription(VehicleState, 'vehicle/state', self._on_state,
                                      qos_profile_sensor_data)
             self.create_timer(params.period, self._on_tick)
+        raise_real_time(by=0)   # after start-up: at the launch's priority, below the link
         lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'{setup.vehicle_name} on {setup.surface.name}, path {path.name}: '
                                f'{path.length:.1f} m; radii {params.radius_min:g}'

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import gc
-import os
 import signal
 import time
 from typing import Callable
@@ -72,51 +71,6 @@ def run_node(factory: Callable[[], Node], name: str, args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
-
-
-def leave_real_time() -> bool:
-    """Run this process at normal priority if it was started at a real-time one (a launch
-    under ``chrt``): for the nodes no control loop waits on (the recorder, the live view). A
-    real-time process that compresses a chunk holds a core as long as it likes against the
-    simulator and the bridge at the same priority. Every thread leaves, the middleware's too
-    (they exist once the node does, and take each message of every topic the recorder records).
-    True if the priority was dropped."""
-    try:
-        if os.sched_getscheduler(0) not in (os.SCHED_FIFO, os.SCHED_RR):
-            return False
-        for tid in [0, *_threads()]:
-            try:
-                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-            except ProcessLookupError:   # a thread that ended meanwhile
-                pass
-        return True
-    except (AttributeError, OSError):    # no such call here, or not allowed: leave it
-        return False
-
-
-def _threads() -> list[int]:
-    """This process's thread IDs (Linux), [] where there is no /proc."""
-    try:
-        return [int(t) for t in os.listdir('/proc/self/task')]
-    except OSError:
-        return []
-
-
-def raise_real_time(by: int = 10) -> bool:
-    """Run above the launch's real-time priority (a launch under ``chrt``), for the 10 ms link
-    cycles (the bridge, a simulated car): an equal-priority node in a burst (a solve, a chunk
-    written) is not preempted by them, and the link's 30 ms frame timeout is short. Nothing
-    changes outside a real-time launch or where it is not allowed. True if raised."""
-    try:
-        policy = os.sched_getscheduler(0)
-        if policy in (os.SCHED_FIFO, os.SCHED_RR):
-            prio = min(os.sched_getparam(0).sched_priority + by,
-                       os.sched_get_priority_max(policy))
-            os.sched_setscheduler(0, policy, os.sched_param(prio))
-            return True
-    except (AttributeError, OSError):
-        pass
-    return False
 
 
 def settle_garbage_collector() -> None:

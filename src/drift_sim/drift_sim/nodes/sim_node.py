@@ -14,7 +14,9 @@ from std_msgs.msg import Header, String
 
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import raise_real_time, run_node
+from drift_control.nodes.priority import raise_real_time
+from drift_control.nodes.qos import loop_writer_qos
+from drift_control.nodes.spin import run_node
 from drift_control.pacing import Pacer
 from drift_control.params import ParamError, config_dir, parse_overrides
 from drift_sim.lockstep import LockstepGate
@@ -86,7 +88,6 @@ class SimNode(Node):
             from drift_vehicle_bridge.params import load_bridge_params
             from drift_vehicle_bridge.vehicle_side import CarSide
             self._mode = 'realtime'
-            raise_real_time()   # it stands in for a car: its 10 ms cycle must not wait
             link = load_bridge_params(cfg, parse_overrides(link_set, 'sim.link_set'),
                                       loaded.scenario.vehicle)
             self._can = CanVehicle(self._sim, CarSide.open(link, cfg), can_hold)
@@ -95,15 +96,18 @@ class SimNode(Node):
             self.create_timer(1.0, self._on_link_diag)
         elif io != 'ros':
             raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        reliable = loop_writer_qos(1.0 / self._sim.dt)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
         self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
         self._inputs = [
-            self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable),
+            self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
+                depth=10, reliability=ReliabilityPolicy.RELIABLE)),
             self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
                                      offer_reference(convert.time_from_msg(m.header.stamp)), 10)]
-        self._wait_recorder = self._wait_recorder and self._mode == 'lockstep' and io == 'ros'
+        # lock-step: t = 0 waits for the recorder; a car on a link holds until it may engage
+        self._wait_recorder = self._wait_recorder and (
+            (self._mode == 'lockstep' and io == 'ros') or io == 'link')
         self._recorder_matched = None    # topic -> publishers the recorder is matched with
         if self._wait_recorder:   # t = 0 goes out once the recorder hears every publisher
             self.create_subscription(String, '/recorder/matched', self._on_recorder_matched,
@@ -113,6 +117,8 @@ class SimNode(Node):
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
         self.create_timer(tick, self._on_tick)
+        if self._can is not None:
+            raise_real_time()   # it stands in for a car: its 10 ms cycle must not wait
         lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), vehicle '
                                f'{loaded.scenario.vehicle}, seed '
@@ -167,17 +173,20 @@ class SimNode(Node):
             self.get_logger().info(f'scenario finished at t = {self._sim.t:.2f} s')
             self._end(True)
             return
-        if self._mode == 'lockstep':
-            if self._wait_recorder:
-                if not self._recorder_ready():
-                    if time.monotonic() - self._started > self._startup:
-                        return self._fail(f'the recorder did not hear every publisher within '
-                                          f'startup_timeout {self._startup:g} s '
-                                          f'(it reports {self._recorder_matched})')
+        if self._wait_recorder:   # nothing of the run may go unrecorded
+            if not self._recorder_ready():
+                if time.monotonic() - self._started > self._startup:
+                    return self._fail(f'the recorder did not hear every publisher within '
+                                      f'startup_timeout {self._startup:g} s '
+                                      f'(it reports {self._recorder_matched})')
+                if self._mode == 'lockstep':
                     return
+            else:
                 self._wait_recorder = False
-                self._offered = time.monotonic()
-                self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
+                if self._mode == 'lockstep':
+                    self._offered = time.monotonic()
+                    self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
+        if self._mode == 'lockstep':
             if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
                 # a node that joins late (the NMPC compiling its solver on first use) must still
                 # see the first state: offer it again until the first command (state only; the
@@ -217,7 +226,7 @@ class SimNode(Node):
                 break
             stamp = now - Duration(seconds=(n - 1 - i) * self._sim.dt)
             if self._can is not None:
-                self._can.step(time.monotonic())
+                self._can.step(time.monotonic(), may_engage=not self._wait_recorder)
                 self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
             else:
                 self._publish(self._sim.step(self._command), stamp)

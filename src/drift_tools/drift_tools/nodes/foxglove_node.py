@@ -7,7 +7,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from visualization_msgs.msg import MarkerArray
 
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import leave_real_time, run_node
+from drift_control.nodes.priority import leave_real_time
+from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir, default_vehicle, load_vehicle
 from drift_control.scenario import load_scenario_spec
 from drift_tools.car_scene import VIEW_TOPICS, CarScene, CarShape

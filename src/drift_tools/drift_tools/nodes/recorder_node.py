@@ -12,7 +12,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import Header, String
 
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import leave_real_time, run_node
+from drift_control.nodes.priority import leave_real_time
+from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
 from drift_tools.disk import MIB, DiskLevel, DiskLimits, DiskWatch

@@ -10,7 +10,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.nodes.runtime_params import lock_parameters
-from drift_control.nodes.spin import raise_real_time, run_node
+from drift_control.nodes.priority import raise_real_time
+from drift_control.nodes.qos import loop_writer_qos
+from drift_control.nodes.spin import run_node
 from drift_control.ocp import load_nmpc_params
 from drift_control.params import config_dir, load_vehicle, parse_overrides
 from drift_control.plausibility import InputChecker
@@ -29,7 +31,6 @@ class BridgeNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('vehicle_bridge', **kwargs)
-        raise_real_time()   # its 10 ms cycle before the controller's bursts (a launch under chrt)
         cfg = self.declare_parameter('config_dir', str(config_dir())).value
         scenario = self.declare_parameter('scenario', '').value
         vehicle = self.declare_parameter('vehicle', '').value   # limits: '' = the scenario's car
@@ -58,8 +59,8 @@ class BridgeNode(Node):
         self._hw = log_file or params.link()
         self._stats, self._diag_period = None, 1.0
         self._ticked = False
-        state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state',
+                                                loop_writer_qos(1.0 / params.cycle_time))
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
@@ -69,6 +70,7 @@ class BridgeNode(Node):
         self.create_service(SetBool, 'bridge/arm', self._on_arm)
         self.create_timer(params.cycle_time, self._on_tick)
         self.create_timer(self._diag_period, self._on_diag)
+        raise_real_time()   # its 10 ms cycle before the controller's bursts (a launch under chrt)
         lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'vehicle bridge on {self._hw}, mode {self._gw.mode.name}'
                                + (', auto-arm (simulation)' if params.auto_arm else ''))
