@@ -323,3 +323,16 @@ def test_the_backlog_before_the_first_cycle_is_dropped_and_a_failing_link_does_n
             raise OSError('socket closed')
 
     assert Gateway(Broken(), codec, params).discard_backlog() > 0     # bounded, returns
+
+
+def test_the_car_drops_the_requests_it_queued_before_it_started(codec):
+    # a simulated car that waited (for the recorder) before its first step: the bridge's
+    # requests meanwhile are history, not counter jumps
+    with can.Bus('backlog_car', interface='virtual') as car_bus, \
+            can.Bus('backlog_car', interface='virtual') as our_bus:
+        car = CarSide(car_bus, codec)
+        gw = Gateway(our_bus, codec, load_bridge_params())
+        for k in range(30):
+            gw.step(0.01 * k)             # requests every cycle, no one reading
+        assert car.discard_backlog() == 90
+        assert car.discard_backlog() == 0 and car.checker.rejected == 0

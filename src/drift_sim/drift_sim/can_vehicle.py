@@ -38,15 +38,13 @@ class CanVehicle:
         self.step_gap_max = 0.0   # longest time between two steps: the car's stall [s]
         self._last_step: float | None = None
 
-    def step(self, now: float, may_engage: bool = True) -> VehicleState:
-        """One 10 ms cycle at ``now`` [s] (the bus side's clock): poll, step, send. A car held
-        until engaged stays held while ``may_engage`` is False (the recorder not yet hearing
-        every node: the run starts once all of it is recorded)."""
+    def step(self, now: float) -> VehicleState:
+        """One 10 ms cycle at ``now`` [s] (the bus side's clock): poll, step, send."""
         if self._last_step is not None:
             self.step_gap_max = max(self.step_gap_max, now - self._last_step)
         self._last_step = now
         command = self.car.poll_command(now)
-        self.engaged = self.engaged or (command is not None and may_engage)
+        self.engaged = self.engaged or command is not None
         if self.hold and not self.engaged:   # sensors still measure (noise): never frozen
             state = self.sim.plant.measure()
             self.car.send_state(dataclasses.replace(state, stamp=now))

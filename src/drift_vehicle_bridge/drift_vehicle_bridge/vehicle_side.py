@@ -87,6 +87,20 @@ class CarSide:
         self.frames_sent += sent
         return sent
 
+    def discard_backlog(self, limit: int = 100_000) -> int:
+        """Drop what the link queued while the car was not stepping (it waited to start): those
+        requests are history, and a receive queue that overflowed meanwhile would read as
+        counter jumps. Returns how many PDUs."""
+        n = 0
+        while n < limit:
+            try:
+                if self.transport.recv(timeout=0.0) is None:
+                    break
+            except (can.CanError, OSError, ValueError):   # a bad datagram: also history
+                pass
+            n += 1
+        return n
+
     def poll_command(self, now: float | None = None) -> Command | None:
         """Read pending frames; the request to apply at ``now`` [s] (default: monotonic clock).
 

@@ -105,7 +105,7 @@ class SimNode(Node):
                 depth=10, reliability=ReliabilityPolicy.RELIABLE)),
             self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
                                      offer_reference(convert.time_from_msg(m.header.stamp)), 10)]
-        # lock-step: t = 0 waits for the recorder; a car on a link holds until it may engage
+        # lock-step: t = 0 waits for the recorder; a car on a link sends nothing before
         self._wait_recorder = self._wait_recorder and (
             (self._mode == 'lockstep' and io == 'ros') or io == 'link')
         self._recorder_matched = None    # topic -> publishers the recorder is matched with
@@ -179,10 +179,11 @@ class SimNode(Node):
                     return self._fail(f'the recorder did not hear every publisher within '
                                       f'startup_timeout {self._startup:g} s '
                                       f'(it reports {self._recorder_matched})')
-                if self._mode == 'lockstep':
-                    return
+                return
             else:
                 self._wait_recorder = False
+                if self._can is not None:
+                    self._can.car.discard_backlog()
                 if self._mode == 'lockstep':
                     self._offered = time.monotonic()
                     self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
@@ -226,7 +227,7 @@ class SimNode(Node):
                 break
             stamp = now - Duration(seconds=(n - 1 - i) * self._sim.dt)
             if self._can is not None:
-                self._can.step(time.monotonic(), may_engage=not self._wait_recorder)
+                self._can.step(time.monotonic())
                 self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
             else:
                 self._publish(self._sim.step(self._command), stamp)
