@@ -214,17 +214,10 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
 
 
 def node_env(opts: RunOptions, base: dict | None = None) -> dict:
-    """The child environment: ROS domain and discovery range always set, DDS over UDP, output
-    unbuffered."""
+    """The child environment: ROS domain and discovery range always set, output unbuffered."""
     env = dict(os.environ if base is None else base)
     env['ROS_DOMAIN_ID'] = str(opts.domain_id)
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = opts.discovery_range
-    # DDS over (loopback) UDP only, unless the caller says otherwise: Fast DDS's shared-memory
-    # transport checks a reader's port when it first sends to it, and a port whose listener has
-    # not run yet (a node starting) or died (a port left in /dev/shm by a killed run: the same
-    # domain reuses its name) stops that publish for 333 ms, in the bridge's 10 ms cycle
-    # (eProsima/Fast-DDS#6535)
-    env.setdefault('FASTDDS_BUILTIN_TRANSPORTS', 'UDPv4')
     env['PYTHONUNBUFFERED'] = '1'
     env['RCUTILS_LOGGING_BUFFERED_STREAM'] = '0'
     # The launcher prefixes the node name; keep ROS's own line short.
