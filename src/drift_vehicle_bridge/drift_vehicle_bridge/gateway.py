@@ -17,7 +17,7 @@ from drift_vehicle_bridge.mode import BridgeMode, ModeManager
 from drift_vehicle_bridge.monitor import StateMonitor
 from drift_vehicle_bridge.params import BridgeParams, description_path
 from drift_vehicle_bridge.pdu import Pdu
-from drift_vehicle_bridge.transport import as_transport, open_transport
+from drift_vehicle_bridge.transport import as_transport, discard_pending, open_transport
 
 log = logging.getLogger(__name__)
 
@@ -106,14 +106,8 @@ class Gateway:
         the bridge ran, and a receive queue that overflowed in that time would read as counter
         jumps of every PDU.
         """
-        n = 0
-        for _ in range(100 * MAX_FRAMES_PER_CYCLE if self.transport is not None else 0):
-            try:
-                if self.transport.recv(timeout=0.0) is None:
-                    break
-            except (can.CanError, OSError, ValueError):   # a bad datagram: also history
-                pass
-            n += 1
+        n = 0 if self.transport is None else \
+            discard_pending(self.transport, 100 * MAX_FRAMES_PER_CYCLE)
         self.discarded_at_start += n
         return n
 

@@ -42,6 +42,21 @@ class CanTransport:
         self.shutdown()
 
 
+def discard_pending(transport, limit: int) -> int:
+    """Read and drop what ``transport`` has queued, at most ``limit`` PDUs (a link that keeps
+    failing or babbling must not hold the caller); a bad datagram counts as one. Returns how
+    many."""
+    n = 0
+    while n < limit:
+        try:
+            if transport.recv(timeout=0.0) is None:
+                break
+        except (can.CanError, OSError, ValueError):
+            pass
+        n += 1
+    return n
+
+
 def pdu_of(msg: can.Message) -> Pdu:
     """A received frame as a PDU; extended, remote and error frames keep SocketCAN's flags."""
     can_id = msg.arbitration_id | (CAN_EFF_FLAG if msg.is_extended_id else 0) \

@@ -16,7 +16,7 @@ from drift_vehicle_bridge.codec import (CMD_STATUS, CMD_STEER, CMD_TORQUE, COMMA
 from drift_vehicle_bridge.e2e import SMConfig
 from drift_vehicle_bridge.mode import BridgeMode
 from drift_vehicle_bridge.params import BridgeParams, description_path
-from drift_vehicle_bridge.transport import as_transport, open_transport
+from drift_vehicle_bridge.transport import as_transport, discard_pending, open_transport
 
 
 def default_dbc() -> str:
@@ -91,15 +91,7 @@ class CarSide:
         """Drop what the link queued while the car was not stepping (it waited to start): those
         requests are history, and a receive queue that overflowed meanwhile would read as
         counter jumps. Returns how many PDUs."""
-        n = 0
-        while n < limit:
-            try:
-                if self.transport.recv(timeout=0.0) is None:
-                    break
-            except (can.CanError, OSError, ValueError):   # a bad datagram: also history
-                pass
-            n += 1
-        return n
+        return discard_pending(self.transport, limit)
 
     def poll_command(self, now: float | None = None) -> Command | None:
         """Read pending frames; the request to apply at ``now`` [s] (default: monotonic clock).

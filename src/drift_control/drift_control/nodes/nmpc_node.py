@@ -15,7 +15,6 @@ from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
-from drift_control.nodes.qos import loop_writer_qos
 from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir
 REALTIME_REFERENCE_WAIT = 0.005   # trigger: state, wall time [s]
@@ -43,10 +42,9 @@ class NmpcNode(Node):
         mode = mode or (setup.scenario.control_mode if setup.scenario else 'full')
         self._nmpc = setup.build_nmpc(MODES[mode])
         self._state = self._ref = self._last = None
-        self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command',
-                                              loop_writer_qos(1.0 / params.Ts))
-        self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status',
-                                                 loop_writer_qos(1.0 / params.Ts))
+        command_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
+        self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
+        self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         # under sim time the simulator waits for us: wait for the reference of this very state
         # (deterministic); in real time at most a few ms, so a late reference never stalls us

@@ -15,7 +15,6 @@ from std_msgs.msg import Header, String
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
-from drift_control.nodes.qos import loop_writer_qos
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import Pacer
 from drift_control.params import ParamError, config_dir, parse_overrides
@@ -96,13 +95,12 @@ class SimNode(Node):
             self.create_timer(1.0, self._on_link_diag)
         elif io != 'ros':
             raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
-        reliable = loop_writer_qos(1.0 / self._sim.dt)
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
         self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
         self._inputs = [
-            self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
-                depth=10, reliability=ReliabilityPolicy.RELIABLE)),
+            self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable),
             self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
                                      offer_reference(convert.time_from_msg(m.header.stamp)), 10)]
         # lock-step: t = 0 waits for the recorder; a car on a link sends nothing before

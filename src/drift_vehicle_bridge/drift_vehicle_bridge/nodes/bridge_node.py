@@ -11,7 +11,6 @@ from std_srvs.srv import SetBool
 
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
-from drift_control.nodes.qos import loop_writer_qos
 from drift_control.nodes.spin import run_node
 from drift_control.ocp import load_nmpc_params
 from drift_control.params import config_dir, load_vehicle, parse_overrides
@@ -59,8 +58,8 @@ class BridgeNode(Node):
         self._hw = log_file or params.link()
         self._stats, self._diag_period = None, 1.0
         self._ticked = False
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state',
-                                                loop_writer_qos(1.0 / params.cycle_time))
+        state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
