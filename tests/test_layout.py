@@ -56,8 +56,8 @@ def test_link_nodes_run_above_and_the_recorder_below_a_real_time_launch():
     node = ('import os, threading; from drift_control.nodes import priority as p; '
             'go = threading.Event(); t = threading.Thread(target=go.wait); t.start(); '
             'print(os.sched_getscheduler(0), p.launch_priority()); '
-            'p.raise_real_time(); print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, '
-            'os.sched_getparam(t.native_id).sched_priority); '
+            'p.raise_real_time(); print(os.sched_getscheduler(0), '
+            'os.sched_getparam(0).sched_priority, os.sched_getparam(t.native_id).sched_priority); '
             'p.leave_real_time(5); print(os.sched_getscheduler(t.native_id), '
             'os.getpriority(os.PRIO_PROCESS, t.native_id)); go.set()')
     launcher = ('import os, subprocess, sys; '

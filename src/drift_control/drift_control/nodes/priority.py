@@ -2,7 +2,8 @@
 
 Linux gives real-time tasks at most 95 % of each CPU per second (``sched_rt_runtime_us``):
 with every node at real-time priority from its start, the start-up imports and builds and the
-recorder's compression used that up, and all of them were stopped for the rest of the second
+solves used that up (``rt_time`` reached 950 ms), and all of them were stopped for the rest of
+the second
 (the bridge then lost frames and heartbeats). So the launcher drops to normal priority and
 hands its real-time priority to the nodes in ``LAUNCH_RT_ENV``; each node starts at normal
 priority and takes real time after its start-up: the link cycles (the bridge, a simulated car;
@@ -47,10 +48,10 @@ def leave_launch_real_time() -> dict[str, str]:
 
 def raise_real_time(by: int = LINK_ABOVE) -> bool:
     """After start-up: every thread ``by`` above the launch's real-time priority (the link
-    cycles; 0 for the controller's nodes). The middleware's threads too: a publish waits for
-    a lock its discovery thread holds while it matches a new subscriber, and that thread at a
-    lower priority, preempted by the controller, held the bridge's cycle for 330 ms. Nothing
-    changes outside a real-time launch or where it is not allowed. True if raised."""
+    cycles; 0 for the controller's nodes). The middleware's threads too: they deliver the
+    node's messages and hold locks its publishes wait on, and below the node they would wait
+    for the controller's solves. Nothing changes outside a real-time launch or where it is
+    not allowed. True if raised."""
     base = launch_priority()
     if base is None:
         return False

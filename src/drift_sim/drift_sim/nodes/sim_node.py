@@ -178,13 +178,12 @@ class SimNode(Node):
                                       f'startup_timeout {self._startup:g} s '
                                       f'(it reports {self._recorder_matched})')
                 return
-            else:
-                self._wait_recorder = False
-                if self._can is not None:
-                    self._can.car.discard_backlog()
-                if self._mode == 'lockstep':
-                    self._offered = time.monotonic()
-                    self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
+            self._wait_recorder = False
+            if self._can is not None:
+                self._can.car.discard_backlog()
+            if self._mode == 'lockstep':
+                self._offered = time.monotonic()
+                self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
         if self._mode == 'lockstep':
             if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
                 # a node that joins late (the NMPC compiling its solver on first use) must still
