@@ -444,6 +444,52 @@ def test_configured_solver_is_compiled(nmpc):
         assert nmpc._solver.iteration is not None, 'one compiled call per RTI iteration'
 
 
+class Counted:
+    """A compiled function that counts its calls."""
+
+    def __init__(self, fn):
+        self.fn, self.calls = fn, 0
+
+    def __getattr__(self, name):
+        return getattr(self.fn, name)
+
+    def __call__(self):
+        self.calls += 1
+        return self.fn()
+
+
+def test_prepared_steps_give_the_same_commands_bit_for_bit(vp, params, plant, eq30):
+    """``prepare`` (the linearisation ahead of the state) changes when the work is done, not
+    its result: a loop with it and one without give identical commands, through a friction
+    change (the prepared linearisation is then not used) and a fallback's cold restart."""
+    if not shutil.which('gcc'):
+        pytest.skip('no gcc')
+    loops = []
+    for prepared in (False, True):
+        ctrl = Nmpc(vp, params, mu=1.0)
+        prep, feedback = ctrl._solver.iteration
+        ctrl._solver.iteration = counted = Counted(prep), feedback
+        x, commands, in_step = perturbed_start(eq30), [], []
+        for k in range(60):
+            now = k * TS
+            if k == 30:
+                ctrl.mu = 0.9
+            state = measure(x, now) if k != 45 else None   # one missing state: fallback
+            before = counted[0].calls
+            res = ctrl.step(state, Reference(now, eq30, Direction.LEFT), now)
+            in_step.append(counted[0].calls - before)
+            if prepared:
+                ctrl.prepare()
+            commands.append(res.command)
+            for _ in range(2):
+                x = np.asarray(plant(x, [res.command.delta_rate, res.command.drive_torque],
+                                     [0.0, 0.95])).ravel()
+        loops.append(commands)
+    assert loops[0] == loops[1]
+    assert sum(in_step[1:30]) == 0, 'a prepared step only does the feedback'
+    assert in_step[30] == 1, 'prepared for another friction: linearised again'
+
+
 @pytest.mark.parametrize('qp', ['hpipm', 'qrqp'])
 def test_compiled_iteration_matches_interpreted(vp, params, eq30, qp):
     """The one-call compiled iteration solves the same QP as the interpreted functions (its

@@ -115,6 +115,8 @@ class Nmpc:
         self._T_act = 0.0                    # modelled torque at the wheels [Nm]
         self._d = np.zeros(NXO)              # model error per control period (offset-free)
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
+        self._to_predict: tuple | None = None      # ... before it is worked out: (x, u, mu, d)
+        self._guess: tuple | None = None           # (solution, age, the warm start from it)
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
         self.inputs.reset()
@@ -149,6 +151,15 @@ class Nmpc:
         self._last = result.command
         self._T_act = self._propagate_torque(result.command.drive_torque, state)
         return replace(result, stage_dt=self.params.dt)
+
+    def prepare(self) -> None:
+        """Do the next cycle's work that needs no measurement now, once the command is out:
+        the one-period prediction and the model's linearisation along the warm start (the
+        real-time iteration's preparation phase). Optional: ``step`` does whatever was not
+        prepared, and its command is the same bit for bit either way."""
+        self._predict()
+        if self._w is not None:
+            self._solver.prepare(self._warm_guess(), self.mu)
 
     def _propagate_torque(self, request: float, state) -> float:
         """Wheel torque after one period of ``request`` through the powertrain lag (exact)."""
@@ -219,10 +230,7 @@ class Nmpc:
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
         else:
-            # the last solution is ``_age`` + 1 periods old (more after failed cycles)
-            shift = self._periods_in_stages(self._age + 1) \
-                if self.params.solver.warm_start == 'shifted' else 0.0
-            w0, iterations = self._shifted(self._w, shift), self.params.solver.max_iter
+            w0, iterations = self._warm_guess(), self.params.solver.max_iter
         w0[:NS] = x_init
         t0 = time.perf_counter()
         try:
@@ -238,7 +246,7 @@ class Nmpc:
         self._w, self._age, self._failures, self._engaged = out.w, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
         # where the next state should be: one control period of the model from this one
-        self._x1_pred = self._period(X_pred[0], U_pred[0], self.mu) + d
+        self._to_predict = X_pred[0].copy(), U_pred[0].copy(), self.mu, d
         command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
@@ -270,6 +278,22 @@ class Nmpc:
         states[1:, S_T_LAST] = states[1:, S_T_ACT] = T
         return self.ocp.join(states, np.tile([0.0, T], (N, 1)))
 
+    def _warm_guess(self) -> np.ndarray:
+        """The next solve's start: the last solution, ``_age`` + 1 periods old (more after
+        failed cycles), shifted by that time or as it was (``warm_start``); a new array."""
+        w, age = self._w, self._age
+        if self._guess is None or self._guess[0] is not w or self._guess[1] != age:
+            shift = self._periods_in_stages(age + 1) \
+                if self.params.solver.warm_start == 'shifted' else 0.0
+            self._guess = w, age, self._shifted(w, shift)
+        return self._guess[2].copy()
+
+    def _predict(self) -> None:
+        """The last solve's prediction of the next measured state, if not yet worked out."""
+        if self._to_predict is not None:
+            x, u, mu, d = self._to_predict
+            self._x1_pred, self._to_predict = self._period(x, u, mu) + d, None
+
     def _periods_in_stages(self, periods: int) -> float:
         return periods * self.params.Ts / self.params.dt
 
@@ -296,6 +320,7 @@ class Nmpc:
         (the prediction then matches what ran).
         """
         gain, p = self.params.disturbance_gain, self.params
+        self._predict()
         if gain <= 0.0 or self._x1_pred is None:
             return
         beta_ref = ref.target.beta
@@ -317,7 +342,7 @@ class Nmpc:
         """A cycle without a usable solution: the shifted plan while it lasts (``shift``), then
         fallback."""
         self._failures += 1
-        self._x1_pred = None
+        self._x1_pred = self._to_predict = None
         N = self.params.N
         if shift and self._w is not None and self._failures <= self.params.max_failures \
                 and self._periods_in_stages(self._age + 1) < N - self._hold:

@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 
 from drift_control.compiled import HPIPM_FLAGS, CompiledFunction, build_cached
-from drift_control.ocp import NS, NXO, Ocp, SolverParams
+from drift_control.ocp import NREF, NS, NXO, Ocp, SolverParams
 from drift_control.params import cache_dir
 from drift_control.vehicle import NU
 
@@ -53,8 +53,10 @@ class RtiSolver:
     ``H = 2 Jr' Jr`` (Gauss-Newton: positive semi-definite, no second derivatives of the model).
 
     With ``codegen`` and a QP solver casadi generates C for (HPIPM, qrqp), one iteration
-    (linearisation, QP, step) is one compiled call (``iteration``); a failed QP is then solved
-    again by the interpreted QP solver on the same data, which reports its status.
+    (linearisation, QP, step) is two compiled calls (``iteration``): the part that needs no
+    measurement can run ahead (``prepare``, the real-time iteration's preparation phase), so a
+    state waits only for the feedback part. A failed QP is solved again by the interpreted QP
+    solver on the same data, which reports its status.
     """
 
     def __init__(self, ocp: Ocp, sp: SolverParams):
@@ -78,6 +80,10 @@ class RtiSolver:
         self.qp_data = qp_data
         self.qp = self._conic(A.sparsity())
         self.iteration = None
+        # what ``prepare`` linearised: the guess's stages 1 .. N-1 and mu
+        self._linearised = slice(NS + NU, ocp.N * (NS + NU))
+        self._mu_index = (ocp.N + 1) * NREF
+        self._prepared: tuple[np.ndarray, float] | None = None
         if sp.codegen and sp.qp_solver in _CODEGEN_QP:
             self.iteration = self._compiled_iteration(grad_fn)
         if sp.codegen and self.iteration is None:
@@ -93,9 +99,11 @@ class RtiSolver:
         opts['error_on_fail'] = False
         return ca.conic('nmpc_qp', sp.qp_solver, {'h': self.H.sparsity(), 'a': a_sparsity}, opts)
 
-    def _compiled_iteration(self, grad_fn) -> CompiledFunction | None:
-        """One iteration, ``(ws, p, lbs, ubs) -> (QP data, J, dws, qp_cost, ...)`` in scaled
-        variables, compiled.
+    def _compiled_iteration(self, grad_fn) -> tuple[CompiledFunction, CompiledFunction] | None:
+        """One iteration as two compiled calls in scaled variables: ``prepare``, the model's
+        stages 1 .. N-1 linearised at ``(ws, mu)`` (no measurement needed), then ``feedback``,
+        ``(ws, p, lbs, ubs, prepared) -> (QP data, J, dws, qp_cost, ...)``: stage 0 at the
+        measured state, the gaps with the model error, the cost gradient, the QP and its step.
 
         The gap Jacobian comes from one SX function per stage (value and forward derivatives
         share their subexpressions: ~40 % less work than differentiating the mapped MX gaps,
@@ -113,10 +121,17 @@ class RtiSolver:
 
         ws, p = ca.MX.sym('ws', ocp.nw), ca.MX.sym('p', ocp.np)
         lbs, ubs = ca.MX.sym('lbs', ocp.nw), ca.MX.sym('ubs', ocp.nw)
+        mu_s = ca.MX.sym('mu')
         w = self.D * ws
-        _, mu_p, d = ocp.unpack_params(p)
         body = ca.reshape(w[:N * nz], nz, N)
-        X_next, jacs = stage.map(N)(body[:NS, :], body[NS:, :], mu_p)
+        rest = stage.map(N - 1)(body[:NS, 1:], body[NS:, 1:], mu_s)
+        prepare = ca.Function('nmpc_rti_prepare', [ws, mu_s], list(rest))
+        X_rest = ca.MX.sym('X_rest', rest[0].sparsity())
+        jac_rest = ca.MX.sym('jac_rest', rest[1].sparsity())
+
+        _, mu_p, d = ocp.unpack_params(p)
+        X_0, jac_0 = stage(body[:NS, 0], body[NS:, 0], mu_p)
+        X_next, jacs = ca.horzcat(X_0, X_rest), ca.horzcat(jac_0, jac_rest)
         # the gaps exactly as Ocp.gaps computes them
         X_next = X_next + ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, N)
         X_after = ca.horzcat(body[:NS, 1:], w[N * nz:])
@@ -132,26 +147,49 @@ class RtiSolver:
                             ubx=ubs - ws, x0=zeros[0], lam_x0=zeros[0], lam_a0=zeros[1])
         # outputs in the order the generated code writes them: the QP data (computed before
         # the QP) stay readable when the QP fails; every multiplier is written, so requested
-        fn = ca.Function('nmpc_rti_iteration', [ws, p, lbs, ubs],
-                         [ca.densify(grad), A.nz[:], gap, J, sol['x'], sol['cost'], sol['lam_x'],
-                          sol['lam_a']])
-        so = compile_cached(fn, 'nmpc_rti_iteration', self.sp,
-                            link=HPIPM_FLAGS if self.sp.qp_solver == 'hpipm' else ())
-        return CompiledFunction(so, fn) if so is not None else None
+        feedback = ca.Function('nmpc_rti_feedback', [ws, p, lbs, ubs, X_rest, jac_rest],
+                               [ca.densify(grad), A.nz[:], gap, J, sol['x'], sol['cost'],
+                                sol['lam_x'], sol['lam_a']])
+        so_prepare = compile_cached(prepare, 'nmpc_rti_prepare', self.sp)
+        so_feedback = compile_cached(feedback, 'nmpc_rti_feedback', self.sp,
+                                     link=HPIPM_FLAGS if self.sp.qp_solver == 'hpipm' else ())
+        if so_prepare is None or so_feedback is None:
+            return None
+        return CompiledFunction(so_prepare, prepare), CompiledFunction(so_feedback, feedback)
+
+    def prepare(self, w, mu: float) -> None:
+        """Linearise the model's stages 1 .. N-1 at the guess ``w`` now, before the state
+        arrives: a ``solve`` from the same guess (whatever its stage 0) then only does the
+        feedback part. The result is the same bit for bit; without codegen this does nothing."""
+        if self.iteration is None:
+            return
+        prep = self.iteration[0]
+        prep.inputs[0][:] = np.asarray(w, dtype=float) / self.D
+        prep.inputs[1][0] = mu
+        prep()
+        self._prepared = prep.inputs[0][self._linearised].copy(), float(mu)
 
     def _iterate(self, ws, p, lbs, ubs):
         """One iteration: (dws, J, QP cost, QP status); dws is None when the QP failed."""
-        it, qp = self.iteration, self.qp
-        if it is None:
+        qp = self.qp
+        if self.iteration is None:
             grad, A, gap, J = self.qp_data(ws, p)
             gap = np.asarray(gap).ravel()
         else:
-            it.inputs[0][:], it.inputs[1][:], it.inputs[2][:], it.inputs[3][:] = ws, p, lbs, ubs
-            if it():
-                dws, cost = it.outputs[4:6]
-                return dws.copy(), it.outputs[3][0], cost[0], _CODEGEN_QP[self.sp.qp_solver]
+            prep, fb = self.iteration
+            mu = float(p[self._mu_index])
+            done = self._prepared
+            if done is None or done[1] != mu or not np.array_equal(done[0], ws[self._linearised]):
+                prep.inputs[0][:], prep.inputs[1][0] = ws, mu
+                prep()
+            self._prepared = None   # the step moves ws: an iteration after this one prepares anew
+            fb.inputs[0][:], fb.inputs[1][:], fb.inputs[2][:], fb.inputs[3][:] = ws, p, lbs, ubs
+            fb.inputs[4][:], fb.inputs[5][:] = prep.outputs
+            if fb():
+                dws, cost = fb.outputs[4:6]
+                return dws.copy(), fb.outputs[3][0], cost[0], _CODEGEN_QP[self.sp.qp_solver]
             # a failed QP: solved again interpreted on the same data, which names the status
-            grad, a_nz, gap, J = (out.copy() for out in it.outputs[:4])
+            grad, a_nz, gap, J = (out.copy() for out in fb.outputs[:4])
             qp = self._qp_same
             A = ca.DM(qp.sparsity_in('a'), a_nz)
             J = J[0]
@@ -258,6 +296,9 @@ class NlpSolver:
             return {**common, 'structure_detection': 'manual', **structure,
                     'fatrop': {'print_level': 0, 'max_iter': max_iter, 'tol': sp.tol}}
         raise ValueError(f'unknown NLP method {sp.method!r}')
+
+    def prepare(self, w, mu: float) -> None:
+        """Nothing to do ahead of the measurement: an NLP solve starts from its guess."""
 
     def solve(self, w0, p, lbw, ubw, iterations: int) -> SolveOutput:
         solver = self.cold if iterations > self.sp.max_iter else self.warm

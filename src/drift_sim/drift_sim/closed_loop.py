@@ -34,6 +34,9 @@ class Feedforward:
         eq = ref.target
         return Command(now, eq.delta, 0.0, eq.T_R, Mode.FULL), 0.0
 
+    def prepare(self):
+        """Nothing to prepare ahead of the next state."""
+
 
 class NmpcController:
     """drift_control.nmpc.Nmpc behind the same small interface.
@@ -58,6 +61,10 @@ class NmpcController:
         if self.trip_time is None and 'supervisor:' in result.message:
             self.trip_time = now
         return result.command, result.solve_time_s
+
+    def prepare(self):
+        """The NMPC's work for the next cycle that needs no measurement (after the command)."""
+        self.nmpc.prepare()
 
 
 class SingleTrackSim:
@@ -169,6 +176,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
             if new is not None:
                 command = new
                 solve_times.append(solve)
+            ctrl.prepare()
         state = sim.step(command)
         tr = sim.sample()
         st = tr.state

@@ -110,6 +110,7 @@ class NmpcNode(Node):
         self._cmd_pub.publish(convert.command_to_msg(result.command, now))
         self._status_pub.publish(convert.status_to_msg(result, now))
         self._last = result
+        self._nmpc.prepare()   # the next cycle's linearisation, while no state waits
 
     def _publish_diagnostics(self):
         r = self._last
