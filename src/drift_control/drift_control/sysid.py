@@ -64,7 +64,9 @@ class SysIdSettings:
     v_min: float = 5.0            # samples slower than this are left out [m/s]
     block_s: float = 10.0         # the held-out split works in blocks of this length [s]
     holdout_every: int = 4        # every n-th block is held out [-]
-    min_beyond_s: float = 1.0     # rear slip past its peak needed to fit the rear peak [s]
+    min_beyond_s: float = 1.0     # rear slip well past its peak needed to fit the rear [s]
+    beyond_factor: float = 1.5    # 'well past': this times the peak slip angle [-] (a car at
+                                  # its grip limit only touches the peak; a drift is 2-4 times)
     front_near_peak: float = 0.7  # the front's slip must reach this share of its peak slip [-]
     max_rel_ci: float = 0.5       # a parameter whose 95 % CI half-width exceeds this share of
                                   # its value is refused as not identified [-]
@@ -295,9 +297,10 @@ def _correlation_time(res: np.ndarray, max_lag: int = 300) -> float:
 
 
 def grip_evidence(vehicle: VehicleParams, data: Smoothed, mask: np.ndarray, mu: float,
-                  dt: float) -> dict:
+                  dt: float, beyond_factor: float = SysIdSettings.beyond_factor) -> dict:
     """How far the log goes past each axle's grip limit, by the model's slips and ``vehicle``'s
-    peak slip angles: the rear's time beyond its peak [s], the front's largest slip / its peak."""
+    peak slip angles: the rear's time beyond ``beyond_factor`` x its peak [s], the front's
+    largest slip (99.5th percentile) and its peak."""
     a_F, _, a_R, _ = slips(data.x[mask].T, vehicle)
     a_F, a_R = np.abs(np.asarray(a_F).ravel()), np.abs(np.asarray(a_R).ravel())
     F_zR = vehicle.m * vehicle.g * vehicle.a / vehicle.L
@@ -305,7 +308,7 @@ def grip_evidence(vehicle: VehicleParams, data: Smoothed, mask: np.ndarray, mu: 
     lat = vehicle.front_tyre.lateral
     front_peak = math.tan(math.pi / (2.0 * lat.C)) / lat.B if lat.C > 1.0 else math.inf
     return {'rear_peak_deg': math.degrees(rear_peak),
-            'rear_beyond_s': float((a_R > rear_peak).sum() * dt),
+            'rear_beyond_s': float((a_R > beyond_factor * rear_peak).sum() * dt),
             'rear_max_deg': math.degrees(float(a_R.max())),
             'front_peak_deg': math.degrees(front_peak),
             'front_max_deg': math.degrees(float(np.percentile(a_F, 99.5)))}
@@ -315,15 +318,15 @@ def _check_evidence(ev: dict, names, s: SysIdSettings) -> None:
     rear = [n for n in names if n in ('rear_tyre.pDy1', 'rear_tyre.pCy1')]
     if rear and ev['rear_beyond_s'] < s.min_beyond_s:
         raise IdentificationError(
-            f'{rear[0]}: no sideslip beyond the grip limit in the log: the rear slip angle passes '
-            f"its peak ({ev['rear_peak_deg']:.1f} deg) for {ev['rear_beyond_s']:.2f} s, "
-            f"{s.min_beyond_s:.1f} s needed (largest {ev['rear_max_deg']:.1f} deg); drive the "
-            'power-on bursts of the manoeuvre')
+            f'{", ".join(rear)}: no sideslip beyond the grip limit in the log: the rear slip '
+            f"angle is past {s.beyond_factor:g} x its peak ({ev['rear_peak_deg']:.1f} deg) for "
+            f"{ev['rear_beyond_s']:.2f} s, {s.min_beyond_s:.1f} s needed (largest "
+            f"{ev['rear_max_deg']:.1f} deg); drive the power-on bursts of the manoeuvre")
     front = [n for n in names if n in ('front_tyre.lateral.D', 'front_tyre.lateral.C')]
     if front and ev['front_max_deg'] < s.front_near_peak * ev['front_peak_deg']:
         raise IdentificationError(
-            f"{front[0]}: the front tyres never near their grip limit in the log (slip angle "
-            f"{ev['front_max_deg']:.1f} deg, peak {ev['front_peak_deg']:.1f} deg); drive the "
+            f"{', '.join(front)}: the front tyres never near their grip limit in the log (slip "
+            f"angle {ev['front_max_deg']:.1f} deg, peak {ev['front_peak_deg']:.1f} deg); drive the "
             'constant-steer circles up to the limit')
 
 
@@ -397,10 +400,14 @@ def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
         raise IdentificationError(f'log: {log.duration:.1f} s is too short to identify anything')
     data = smooth(log, s.window_s)
     train, held = split(log, s)
-    if train.sum() * log.dt < 20.0 or held.sum() == 0:
+    if train.sum() * log.dt < 20.0:
         raise IdentificationError(f'log: only {train.sum() * log.dt:.1f} s above '
                                   f'{s.v_min:.0f} m/s for the fit (20 s needed)')
-    evidence = grip_evidence(prior, data, train | held, mu, log.dt)
+    if held.sum() == 0:
+        raise IdentificationError(f'log: nothing held out to judge the fit on (every '
+                                  f'{s.holdout_every}th block of {s.block_s:g} s above '
+                                  f'{s.v_min:.0f} m/s); a longer log is needed')
+    evidence = grip_evidence(prior, data, train | held, mu, log.dt, s.beyond_factor)
     _check_evidence(evidence, names, s)
 
     problem = EquationError(prior, names, mu, data, train)
@@ -429,7 +436,7 @@ def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
     except np.linalg.LinAlgError:
         ci = np.full(len(q), np.inf)
     fitted = with_values(prior, dict(zip(names, q)))
-    evidence_fit = grip_evidence(fitted, data, train | held, mu, log.dt)
+    evidence_fit = grip_evidence(fitted, data, train | held, mu, log.dt, s.beyond_factor)
     _check_evidence(evidence_fit, names, s)
     for n, v, c, lo_i, hi_i in zip(names, q, ci, lo, hi):
         if not np.isfinite(c) or c > s.max_rel_ci * abs(v):

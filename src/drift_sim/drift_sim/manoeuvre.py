@@ -10,8 +10,8 @@ can follow, each at a speed held with the throttle:
 - ``burst``: turn in at ``steer_deg``, then full power for ``power_s`` s (power-on oversteer),
   power off and counter-steer along the front axle's direction of travel until the car regrips.
 
-Speeds are for a mu = 1 surface and scale with sqrt(mu), torques with mu, so the same file
-drives the dry and the wet pad. Safety: beyond ``beta_abort_deg`` of sideslip the power goes
+Speeds are for a mu = 1 surface and scale with sqrt(mu), drive forces (a share of the car's
+weight, so one file fits cars of any mass) with mu. Safety: beyond ``beta_abort_deg`` of sideslip the power goes
 off whatever the segment asks. ``run_manoeuvre`` plays a scenario on the plant with this driver
 as the only source of commands; ``scripts/sysid_drive.py`` records it to a bag.
 """
@@ -32,7 +32,7 @@ from drift_sim.simulator import Simulator
 
 @dataclass(frozen=True)
 class Segment:
-    """One part of the programme; speeds [m/s] and torques [Nm] are for mu = 1."""
+    """One part of the programme; speeds [m/s] and drive forces are for mu = 1."""
 
     kind: Literal['circle', 'steps', 'sweep', 'burst']
     duration: float                  # [s]
@@ -41,7 +41,7 @@ class Segment:
     period: float = 2.0              # steps: time per step; burst: time per burst cycle [s]
     f0: float = 0.2                  # sweep: start frequency [Hz]
     f1: float = 2.0                  # sweep: end frequency [Hz]
-    torque: float = 0.0              # burst: rear axle torque while the power is on [Nm]
+    drive_g: float = 0.0             # burst: drive force while the power is on, per weight [-]
     power_s: float = 1.5             # burst: seconds of power per cycle, at most [s]
     beta_peak_deg: float = 20.0      # burst: power off once the sideslip reaches this [deg]
     lift_beta_deg: float = 8.0       # circle: power off beyond this sideslip (limit found) [deg]
@@ -50,7 +50,8 @@ class Segment:
         require(self.duration > 0, 'segment.duration', 'must be positive')
         require(1 <= len(self.speed) <= 2 and min(self.speed) > 0, 'segment.speed',
                 'one speed or [start, end], each positive')
-        require(self.period > 0 and 0 < self.power_s < self.period, 'segment.power_s',
+        require(self.period > 0, 'segment.period', 'must be positive')
+        require(self.kind != 'burst' or 0 < self.power_s < self.period, 'segment.power_s',
                 'must lie between 0 and the period')
         require(0 < self.f0 <= self.f1, 'segment.f0', 'need 0 < f0 <= f1')
 
@@ -67,6 +68,7 @@ class Manoeuvre:
     rate_max: float = 1.0            # the hands: road-wheel angle rate [rad/s]
     lift_torque: float = -800.0      # the throttle loop's least torque (lifting) [Nm]
     k_r: float = 0.15                # counter-steer per yaw-rate excess in a slide [rad s/rad]
+    anticipation: float = 0.3        # the driver judges the sideslip this far ahead [s]
     description: str = ''
 
     def __post_init__(self):
@@ -115,6 +117,7 @@ class ScriptedDriver:
             t += seg.duration
         self._integral, self._index, self._delta = 0.0, -1, 0.0
         self._lifted, self._power_off = False, False
+        self._beta_prev, self._beta_rate = 0.0, 0.0
 
     def segment_at(self, t: float) -> tuple[int, float]:
         """Index of the segment running at ``t`` and the time into it [s]."""
@@ -125,6 +128,10 @@ class ScriptedDriver:
         """The steering angle and drive torque for the measured ``state`` at time ``t``."""
         i, tau = self.segment_at(t)
         seg = self.m.segments[i]
+        # the driver feels where the slide is going: |beta| rate through a 50 ms lag
+        rate = (abs(state.beta) - self._beta_prev) / self.dt
+        self._beta_prev = abs(state.beta)
+        self._beta_rate += (rate - self._beta_rate) * min(1.0, self.dt / 0.05)
         if i != self._index:       # a new segment: the throttle loop starts afresh
             self._index, self._integral, self._lifted = i, 0.0, False
             self._cycle = -1
@@ -192,12 +199,15 @@ class ScriptedDriver:
         power_from = 0.4 * (seg.period - seg.power_s)
         if tau < power_from:
             return None
-        if self._power_off is None and (abs(state.beta) > math.radians(seg.beta_peak_deg)
+        # the sideslip the driver expects a moment ahead: a fast-growing slide is caught early
+        ahead = abs(state.beta) + self.m.anticipation * max(self._beta_rate, 0.0)
+        if self._power_off is None and (ahead > math.radians(seg.beta_peak_deg)
                                         or tau >= power_from + seg.power_s):
             self._power_off = tau
         if self._power_off is None:   # full power, eased off as the sideslip nears its peak
-            ease = (abs(state.beta) / math.radians(seg.beta_peak_deg) - 0.3) / 0.5
-            self._power = seg.torque * self.mu * (1.0 - 0.8 * min(1.0, max(0.0, ease)))
+            ease = (ahead / math.radians(seg.beta_peak_deg) - 0.3) / 0.5
+            full = seg.drive_g * self.mu * self.p.m * self.p.g * self.p.R_R
+            self._power = full * (1.0 - 0.8 * min(1.0, max(0.0, ease)))
             return self._power
         fade = 1.0 - (tau - self._power_off) / 0.5
         if fade > 0.0:
