@@ -35,13 +35,14 @@ def test_wilson_interval_against_the_closed_form():
     assert wilson_interval(0, 0) == (0.0, 1.0)
 
 
-def test_jobs_nest_scenario_vehicle_plant_seed_with_distinct_hashes():
+def test_jobs_go_plant_by_plant_through_every_scenario_and_car_with_distinct_hashes():
     jobs = campaign_jobs(['steady_dry', 'steady_wet'], ['m3_competition', 'gr86'], [0, 1],
                          plants=2, overrides=['duration=2'])
     assert len(jobs) == 16 and len({j.key for j in jobs}) == 16
-    assert [(j.scenario, j.vehicle, j.draw, j.seed) for j in jobs[:3]] == [
-        ('steady_dry', 'm3_competition', 0, 0), ('steady_dry', 'm3_competition', 0, 1),
-        ('steady_dry', 'm3_competition', 1, 0)]
+    assert [(j.scenario, j.vehicle, j.draw, j.seed) for j in jobs[:5]] == [
+        ('steady_dry', 'm3_competition', 0, 0), ('steady_dry', 'gr86', 0, 0),
+        ('steady_wet', 'm3_competition', 0, 0), ('steady_wet', 'gr86', 0, 0),
+        ('steady_dry', 'm3_competition', 0, 1)]
     assert all(j.overrides[0] == 'duration=2' and len(j.overrides) > 30 for j in jobs)
     nominal = campaign_jobs(['steady_dry'], ['gr86'], [4])
     assert nominal == [Job('steady_dry', 'gr86', 4)]

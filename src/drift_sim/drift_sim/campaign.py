@@ -82,7 +82,10 @@ def check_run(scenario: str, vehicle: str, overrides=(), config=None) -> None:
 
 def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
                   plant_seed: int = 0, config: str | None = None) -> list[Job]:
-    """Every scenario x vehicle x plant x seed, in that nesting; ParamError names bad input.
+    """Every scenario x vehicle x plant x seed; ParamError names bad input.
+
+    Ordered plant by plant (then seed), each with every scenario and vehicle: a campaign
+    stopped part way has covered every scenario and car alike.
 
     Parameters
     ----------
@@ -96,19 +99,23 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
     overrides = tuple(overrides)
     if plants < 0:
         raise ParamError(f'plants: expected >= 0, got {plants}')
-    jobs = []
+    runs = {}   # (draw, seed) -> the jobs of every scenario and vehicle
     for scenario in scenarios:
         for vehicle in vehicles:
             check_run(scenario, vehicle, overrides, config)
             if plants == 0:
-                jobs += [Job(scenario, vehicle, seed, overrides, config=config) for seed in seeds]
+                for seed in seeds:
+                    runs.setdefault((None, seed), []).append(
+                        Job(scenario, vehicle, seed, overrides, config=config))
                 continue
             population = load_population(vehicle, scenario, overrides, config)
             for index in range(plants):
                 plant = draw(population, index, plant_seed)
-                jobs += [Job(scenario, vehicle, seed, overrides + plant.overrides, index,
-                             plant_seed, plant.values, config) for seed in seeds]
-    return jobs
+                for seed in seeds:
+                    runs.setdefault((index, seed), []).append(
+                        Job(scenario, vehicle, seed, overrides + plant.overrides, index,
+                            plant_seed, plant.values, config))
+    return [job for batch in runs.values() for job in batch]
 
 
 def run_job(job: Job) -> dict:
