@@ -25,3 +25,31 @@ def test_transition_time_and_windowed_maximum():
     assert math.isnan(transition_time(t, -np.abs(beta), math.radians(20.0)))
     e_y = np.where((t > 4.0) & (t < 6.0), 3.0, 0.5)
     assert max_abs_in_windows(t, e_y, [[0.0, 4.0], [6.0, 10.0]]) == 0.5
+
+
+def test_settled_windows_lie_between_the_flips_wherever_they_fall_in_time():
+    from drift_sim.metrics import settled_windows
+    t = np.arange(0.0, 30.0, 0.01)
+    # grip until 2 s, ramp to -30 deg by 5 s, flip to +30 deg over 12-14 s, back over 22-24 s;
+    # a window opens 3 s after the reference came within 1 deg of its value
+    ramp = np.clip((t - 2.0) / 3.0, 0.0, 1.0) * -30.0
+    flip1 = np.clip((t - 12.0) / 2.0, 0.0, 1.0) * 60.0
+    flip2 = np.clip((t - 22.0) / 2.0, 0.0, 1.0) * -60.0
+    beta_ref = np.radians(ramp + flip1 + flip2)
+    beta_ref[:50] = np.nan   # no reference yet
+    windows = settled_windows(t, beta_ref, 3.0, math.radians(10.0))
+    assert len(windows) == 3
+    for (a, b), (a_want, b_want) in zip(windows, [(8.0, 12.0), (17.0, 22.0), (27.0, 30.0)]):
+        assert a == pytest.approx(a_want, abs=0.1) and b == pytest.approx(b_want, abs=0.1)
+    # a reference that never holds one value long enough: no window (the run is judged lost)
+    assert settled_windows(t, np.radians(20.0 * np.sin(t)), 3.0, math.radians(10.0)) == []
+
+
+def test_a_scenario_gives_steady_windows_or_settle_not_both(tmp_path):
+    from drift_control.params import ParamError
+    from drift_control.scenario import load_scenario_spec
+    text = ('duration: 10.0\ncontrol_mode: full\nsurface: {name: dry}\npath: circle_left_15\n'
+            'initial: {V: 11.0, s: 0.0}\nmetrics: {steady: [[1.0, 5.0]], settle: 3.0}\n')
+    (tmp_path / 'both.yaml').write_text(text)
+    with pytest.raises(ParamError, match='settle, not both'):
+        load_scenario_spec(str(tmp_path / 'both.yaml'))

@@ -76,6 +76,9 @@ class MetricWindows:
 
     steady: tuple[tuple[float, ...], ...] = ()   # [[t0, t1], ...] steady drift windows [s]
     transient_end: float = 0.0    # e_y is judged after this time [s]
+    settle: float = 0.0           # > 0: no fixed windows; steady where the sideslip reference
+                                  # has held one drift value this long [s] (a course with
+                                  # flips), e_y judged from the first such window on
     drift_beta_deg: float = 10.0  # |beta| above this counts as drifting [deg]
 
 
@@ -103,6 +106,10 @@ class Scenario:
         for w in self.metrics.steady:
             require(len(w) == 2 and w[0] < w[1], f'scenario {self.name}.metrics.steady',
                     'each window is [t0, t1] with t0 < t1')
+        require(self.metrics.settle >= 0.0, f'scenario {self.name}.metrics.settle',
+                'must not be negative')
+        require(not (self.metrics.settle > 0.0 and self.metrics.steady),
+                f'scenario {self.name}.metrics', 'give steady windows or settle, not both')
 
 
 

@@ -202,21 +202,25 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     data = {k: np.asarray(v, dtype=float) for k, v in log.items()}
     # steady-state tracking is judged against the path's desired sideslip where no reference
     beta_ref = np.where(np.isfinite(data['beta_ref']), data['beta_ref'], data['beta_des'])
-    out = metrics.summary(data['t'], data['beta'], beta_ref, data['e_y'], sc.metrics.steady,
-                          sc.metrics.transient_end, math.radians(sc.metrics.drift_beta_deg),
+    windows, transient_end = sc.metrics.steady, sc.metrics.transient_end
+    if sc.metrics.settle > 0.0:
+        windows = metrics.settled_windows(data['t'], data['beta_ref'], sc.metrics.settle,
+                                          math.radians(sc.metrics.drift_beta_deg))
+        transient_end = max(transient_end, windows[0][0] if windows else math.inf)
+    out = metrics.summary(data['t'], data['beta'], beta_ref, data['e_y'], windows,
+                          transient_end, math.radians(sc.metrics.drift_beta_deg),
                           solve_times, wall)
-    out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], sc.metrics.steady,
+    out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], windows,
                                                loaded.path.length) if loaded.path.closed else None
     out['supervisor_trip_s'] = getattr(ctrl, 'trip_time', None)
-    out['max_abs_e_y_steady_m'] = metrics.max_abs_in_windows(data['t'], data['e_y'],
-                                                            sc.metrics.steady)
+    out['max_abs_e_y_steady_m'] = metrics.max_abs_in_windows(data['t'], data['e_y'], windows)
     out['transition_time_s'] = metrics.transition_time(
         data['t'], data['beta'], math.radians(sc.metrics.drift_beta_deg + 10.0))
     if sc.control_mode == 'torque_only':   # the NMPC's steering is a proposal (paper Sec. VI-B)
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_cmd'], data['delta'],
-                                               sc.metrics.steady))
+                                               windows))
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_plan'], data['delta'],
-                                               sc.metrics.steady, name='steer_plan'))
+                                               windows, name='steer_plan'))
     out.update(scenario=sc.name, vehicle=sc.vehicle, seed=sim.plant.seed, controller=controller,
                overrides=list(overrides), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=plant,

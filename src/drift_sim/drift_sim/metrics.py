@@ -21,6 +21,26 @@ def in_windows(t, windows) -> np.ndarray:
     return mask
 
 
+def settled_windows(t, beta_ref, settle: float, drift_beta: float,
+                    band: float = math.radians(1.0)) -> list[list[float]]:
+    """Steady-drift windows found from the reference: where the sideslip reference has stayed
+    within ``band`` [rad] of one drift value (``|beta_ref| > drift_beta``, one side) for at
+    least ``settle`` seconds. Judges a course with many flips (a figure-8) on the parts
+    between them, wherever a plant's speed puts the flips in time."""
+    t, beta_ref = np.asarray(t, dtype=float), np.asarray(beta_ref, dtype=float)
+    windows, start, open_at = [], None, None
+    for i in range(len(t) + 1):
+        b = beta_ref[i] if i < len(t) else math.nan
+        drifting = abs(b) > drift_beta     # False for NaN (no reference yet, or the end)
+        if start is None or not drifting or abs(b - beta_ref[start]) > band:
+            if open_at is not None:
+                windows.append([float(t[open_at]), float(t[i - 1])])
+            start, open_at = (i if drifting else None), None
+        elif open_at is None and t[i] - t[start] >= settle:
+            open_at = i
+    return windows
+
+
 def rms(values) -> float:
     """Root mean square; NaN for no samples."""
     values = np.asarray(values, dtype=float)
