@@ -254,12 +254,16 @@ class ReferenceSelector:
         # the path along the whole horizon in one call each; the limits run stage by stage
         s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
         K_paths, betas = self.path.curvature_at(s_k), self.path.beta_at(s_k)
+        # _limit and side_weight written out: 24 stages a cycle, the same operations
+        dK, dbeta, dw = p.curvature_rate_max * h, p.beta_rate_max * h, p.side_rate_max * h
+        band = p.side_band or 1.0 / p.radius_max
         for K_path, beta_path in zip(K_paths.tolist(), np.broadcast_to(betas, s_k.shape).tolist()):
             K_k = max(-k_max, min(k_max, K_path - correction))
-            K = _limit(K, K_k, p.curvature_rate_max * h)
-            beta = _limit(beta, beta_path, p.beta_rate_max * h)
-            w = _limit(w, self.side_weight(K_path if p.side_from_path else K),
-                       p.side_rate_max * h)
+            K = K + max(-dK, min(dK, K_k - K))
+            beta = beta + max(-dbeta, min(dbeta, beta_path - beta))
+            u = max(0.0, min(1.0, 0.5 * (1.0 + (K_path if p.side_from_path else K) / band)))
+            side = u * u * (3.0 - 2.0 * u)
+            w = w + max(-dw, min(dw, side - w))
             queries.append((beta, K, w))
             weights.append(w)
         return (target, *(eq for eq, _, _ in self._equilibria(queries))), tuple(weights)

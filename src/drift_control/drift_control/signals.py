@@ -100,7 +100,12 @@ class VehicleState:
 
     def is_finite(self) -> bool:
         """True when every numeric field is finite (NaN/inf never reach a solver)."""
-        return _all_finite(self)
+        # asked by the selector, the NMPC, its supervisor and checks each cycle: worked out once
+        known = self.__dict__.get('_finite')
+        if known is None:
+            known = _all_finite(self)
+            object.__setattr__(self, '_finite', known)
+        return known
 
     def has(self, bits: Validity) -> bool:
         """True when all the given validity bits are set."""
@@ -141,7 +146,13 @@ class Equilibrium:
                            -self.delta, self.T_R)
 
     def is_finite(self) -> bool:
-        return _all_finite(self)
+        isfinite = math.isfinite   # 26 per reference: field by field, not the generic walk
+        try:
+            return (isfinite(self.V) and isfinite(self.beta) and isfinite(self.r)
+                    and isfinite(self.omega_F) and isfinite(self.omega_R)
+                    and isfinite(self.delta) and isfinite(self.T_R))
+        except TypeError:   # a field that is no number: judged as the other signals are
+            return _all_finite(self)
 
 
 @dataclass(frozen=True)

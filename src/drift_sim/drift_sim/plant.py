@@ -53,13 +53,26 @@ class GroundTruth:
         return float(self.y[Y.MU])
 
 
+# the signals copied from a state or an output, by column
+_FROM_STATE = {'r': S.R, 'vx': S.VX, 'vy': S.VY, 'w_FL': S.OMEGA_FL, 'w_FR': S.OMEGA_FR,
+               'w_RL': S.OMEGA_RL, 'w_RR': S.OMEGA_RR, 'delta': S.DELTA,
+               'drive_torque': S.T_DRIVE, 'x': S.X, 'y': S.Y, 'yaw': S.YAW}
+_FROM_OUTPUT = {'ax': Y.AX, 'ay': Y.AY, 'steering_torque': Y.STEER_TORQUE}
+_STATE_COLS = [C[c] for c in _FROM_STATE]
+_STATE_ROWS = list(_FROM_STATE.values())
+_OUTPUT_COLS = [C[c] for c in _FROM_OUTPUT]
+_OUTPUT_ROWS = list(_FROM_OUTPUT.values())
+
+
 def signals(X: np.ndarray, Ys: np.ndarray) -> np.ndarray:
     """True measured signals from states (NS, n) and outputs (NY, n): array (n, len(_COLUMNS))."""
     vx, vy = X[S.VX], X[S.VY]
-    return np.column_stack([
-        np.hypot(vx, vy), np.arctan2(vy, vx), X[S.R], vx, vy, Ys[Y.AX], Ys[Y.AY],
-        X[S.OMEGA_FL], X[S.OMEGA_FR], X[S.OMEGA_RL], X[S.OMEGA_RR], X[S.DELTA],
-        Ys[Y.STEER_TORQUE], X[S.T_DRIVE], X[S.X], X[S.Y], X[S.YAW]])
+    out = np.empty((X.shape[1], len(_COLUMNS)))
+    out[:, C['V']] = np.hypot(vx, vy)
+    out[:, C['beta']] = np.arctan2(vy, vx)
+    out[:, _STATE_COLS] = X[_STATE_ROWS].T
+    out[:, _OUTPUT_COLS] = Ys[_OUTPUT_ROWS].T
+    return out
 
 
 def _state(t: float, row: np.ndarray) -> VehicleState:
@@ -221,7 +234,9 @@ class Plant:
         n = U.shape[1]
         fast.inputs[0][:] = self.x
         fast.inputs[1][:] = U.ravel(order='F')   # casadi's column-major nonzeros
-        fast.inputs[2][:] = np.tile(self.q, n)   # mapped: one column per substep
+        q = fast.inputs[2]   # mapped: one column per substep, rewritten when q changed
+        if not np.array_equal(q[:len(self.q)], self.q):
+            q[:] = np.tile(self.q, n)
         fast()
         return fast.outputs[0].reshape(n, NS).T.copy(), fast.outputs[1].reshape(n, NY).T.copy()
 
