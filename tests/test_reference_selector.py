@@ -338,3 +338,24 @@ def test_start_hint_resolves_an_overlapping_open_path():
     assert sel.select(st).s > 100.0, 'globally the right circle is nearer'
     sel.reset(s_hint=0.0)
     assert sel.select(st).s == pytest.approx(1.0, abs=0.06)
+
+
+@pytest.mark.parametrize('side', [1.0, -1.0])
+def test_a_car_beside_a_straight_in_grip_is_steered_back(side):
+    """On a straight the left and right references are blended; in grip the side follows the
+    corrected curvature, so a car left of the path gets a right-turning yaw rate (and the
+    mirror image), where the path's own side (zero curvature) would cancel to r = 0."""
+    straight = P.from_segments([(200.0, 0.0, 0.0)], sideslip=P.SideslipProfile(0.0))
+    sel = ReferenceSelector(steady_circle_lookup, straight, params())
+    ref = sel.select(state_on(straight, 50.0, e_y=side * 2.0, beta=0.0))
+    assert ref.curvature_cmd * side < 0.0
+    assert ref.target.r * side < 0.0 and all(e.r * side < 0.0 for e in ref.horizon)
+    on_path = ReferenceSelector(steady_circle_lookup, straight, params()).select(
+        state_on(straight, 50.0, beta=0.0))
+    assert on_path.target.r == pytest.approx(0.0, abs=1e-12)
+    # drifting, the side stays the path's: the correction cannot flip the drift
+    drifting = P.from_segments([(200.0, 0.0, 0.0)],
+                               sideslip=P.SideslipProfile(math.radians(30.0)))
+    ref = ReferenceSelector(steady_circle_lookup, drifting, params()).select(
+        state_on(drifting, 50.0, e_y=side * 2.0, beta=0.0))
+    assert ref.target.r == pytest.approx(0.0, abs=1e-12)

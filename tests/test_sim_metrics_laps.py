@@ -53,3 +53,16 @@ def test_a_scenario_gives_steady_windows_or_settle_not_both(tmp_path):
     (tmp_path / 'both.yaml').write_text(text)
     with pytest.raises(ParamError, match='settle, not both'):
         load_scenario_spec(str(tmp_path / 'both.yaml'))
+
+
+def test_exit_time_runs_from_the_references_last_drift_moment_to_grip_for_good():
+    from drift_sim.metrics import exit_time
+    t = np.arange(0.0, 20.0, 0.01)
+    beta_ref = np.radians(np.clip((14.0 - t) / 2.0, 0.0, 1.0) * -30.0)   # drift until 12 s
+    beta = np.radians(np.clip((15.0 - t) / 2.0, 0.0, 1.0) * -30.0)       # the car 1 s later
+    beta[t > 15.5] += np.radians(np.where(t[t > 15.5] < 15.8, -4.0, 0.0))  # a last twitch
+    # the reference within 1 deg of 30 until 12.07 s; |beta| < 3 deg for good from 15.8 s
+    assert exit_time(t, beta, beta_ref) == pytest.approx(15.8 - (14.0 - 2.0 * 29.0 / 30.0),
+                                                         abs=0.02)
+    assert math.isnan(exit_time(t, beta, np.full_like(t, math.radians(-30.0))))   # no exit asked
+    assert math.isnan(exit_time(t, np.full_like(t, math.radians(-30.0)), beta_ref))  # not left

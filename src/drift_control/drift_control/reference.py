@@ -55,6 +55,8 @@ class ReferenceParams:
     horizon_dt: float = 0.02      # time between horizon stages [s]
     side_band: float = 0.0        # |K| below which left/right blend [1/m]; 0: 1/radius_max
     side_from_path: bool = True   # drift side from the path's curvature, not the corrected one
+    side_from_path_beta: float = 0.05   # ... on a straight only while the sideslip reference
+                                  # is above this [rad]; in grip the corrected curvature's
     course_yaw: bool = True       # yaw-rate reference r_eq - d(beta_ref)/dt (see _course_yaw)
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
     window_forward: float = 15.0  # ... and ahead of it [m]
@@ -173,6 +175,15 @@ class ReferenceSelector:
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
         return _blend(left, right, w), Direction.NONE, c_l or c_r
 
+    def _path_side(self, beta_abs: float, K_path: float) -> bool:
+        """Whether the side comes from the path's curvature: in a drift, so the lateral
+        correction cannot flip it back and forth mid-flip, and on a curve. In grip on a
+        straighter stretch (``|K| < side_band``) the corrected curvature's: there the left and
+        right references cancel and the correction would steer nothing."""
+        p = self.p
+        return p.side_from_path and (beta_abs > p.side_from_path_beta
+                                     or abs(K_path) >= (p.side_band or 1.0 / p.radius_max))
+
     def _radius(self, K_cmd: float) -> float:
         """The lookup radius of a curvature, limited to the map range [m]."""
         return 1.0 / max(min(abs(K_cmd), 1.0 / self.p.radius_min), 1.0 / self.p.radius_max)
@@ -216,7 +227,7 @@ class ReferenceSelector:
         if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
-        w = self.side_weight(fp.K if p.side_from_path else K_cmd)
+        w = self.side_weight(fp.K if self._path_side(beta_abs, fp.K) else K_cmd)
         if limited and self._w is not None:
             w = _limit(self._w, w, p.side_rate_max * dt)
         self._w = w
@@ -261,7 +272,8 @@ class ReferenceSelector:
             K_k = max(-k_max, min(k_max, K_path - correction))
             K = K + max(-dK, min(dK, K_k - K))
             beta = beta + max(-dbeta, min(dbeta, beta_path - beta))
-            u = max(0.0, min(1.0, 0.5 * (1.0 + (K_path if p.side_from_path else K) / band)))
+            u = max(0.0, min(1.0, 0.5 * (1.0 + (K_path if self._path_side(beta, K_path) else K)
+                                         / band)))
             side = u * u * (3.0 - 2.0 * u)
             w = w + max(-dw, min(dw, side - w))
             queries.append((beta, K, w))

@@ -118,12 +118,54 @@ class SingleTrackSim:
                            st.drive_torque, self._last.delta)
 
 
+class SensedSim:
+    """The simulator seen through ``drift_sim.sensors`` and a state estimator (or none: the
+    newest sample of each unit); the controller gets the estimator's state."""
+
+    def __init__(self, sim, setup, cfg: Path, sensors: str, estimator: str, sensor_set=(),
+                 sensor_faults=(), estimator_set=()):
+        from drift_control.estimator import Estimator, LatestSamples, load_estimator_params
+        from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
+        self.sim = sim
+        self.sensors = Sensors(load_sensor_params(sensors, cfg, sensor_set), sim.dt,
+                               sim.plant.seed, [parse_fault(f) for f in sensor_faults])
+        self.estimator = (Estimator(setup.vehicle, load_estimator_params(
+            cfg / 'estimator.yaml', estimator_set)) if estimator == 'ekf' else LatestSamples())
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+    def reset(self):
+        self.sim.reset()
+        self.state = self.estimator.step(self.sensors.reset(self.sim.truth.state), self.sim.t)
+        return self.state
+
+    def step(self, command):
+        self.sim.step(command)
+        state = self.estimator.step(self.sensors.step(self.sim.truth.state), self.sim.t)
+        self.state = state or self.state
+        return self.state
+
+    def summary(self) -> dict:
+        """The estimator's NIS, fault events and cost per step (none without an estimator)."""
+        est = self.estimator
+        if not hasattr(est, 'nis_summary'):
+            return {}
+        times = np.asarray(est.step_times) * 1e3
+        return {'nis': est.nis_summary(),
+                'events': [(round(e.t, 3), e.channel, e.reason) for e in est.events],
+                'step_ms_mean': float(times.mean()), 'step_ms_p50': float(np.percentile(times, 50)),
+                'step_ms_p99': float(np.percentile(times, 99))}
+
+
 def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                     controller: str = 'nmpc', plant: str = 'double_track',
                     config: str | Path | None = None, progress: bool = False,
                     stop_on_spin: bool = False, supervised: bool = True,
                     vehicle: str | None = None,
-                    refuse_infeasible: bool = False) -> tuple[dict, dict]:
+                    refuse_infeasible: bool = False, sensors: str | None = None,
+                    estimator: str = 'none', sensor_set=(), sensor_faults=(),
+                    estimator_set=()) -> tuple[dict, dict]:
     """Run a scenario's closed loop in this process; returns (metrics, time series).
 
     Parameters
@@ -144,6 +186,15 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
         Overrides the scenario's vehicle (``config/vehicle/<name>.yaml``).
     refuse_infeasible : bool
         ParamError before the run when the path asks for a drift the car cannot hold.
+    sensors : str, optional
+        ``config/sim/sensors/<name>.yaml`` (e.g. 'realistic'): the controller sees the car
+        through these sensors instead of the plant's own noise and delay model (the default).
+    estimator : {'none', 'ekf'}
+        With ``sensors``: 'ekf' fuses them (``drift_control.estimator``), 'none' hands the
+        controller the newest sample of each unit.
+    sensor_set, sensor_faults, estimator_set : iterable of str
+        ``key=value`` overrides of the sensor set and of ``config/estimator.yaml``; faults as
+        ``drift_sim.sensors.parse_fault`` reads them (``ins:dropout:30:31``).
     """
     cfg = Path(config) if config else config_dir()
     setup = load_setup(cfg, scenario, vehicle, overrides, seed)
@@ -155,6 +206,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     ctrl = (Feedforward() if controller == 'feedforward' else
             NmpcController(setup, supervised))
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, setup.vehicle)
+    if sensors is not None:
+        sim = SensedSim(sim, setup, cfg, sensors, estimator, sensor_set, sensor_faults,
+                        estimator_set)
     every = max(1, int(round(ctrl.period / sim.dt)))
     n_steps = int(round(sc.duration / sim.dt))
 
@@ -163,6 +217,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu',
                            'beta_ref',
                            'beta_des', 'delta_cmd', 'delta_plan', 'T_cmd')}
+    if sensors is not None:   # what the controller saw, next to the truth
+        log.update(beta_seen=[], r_seen=[], V_seen=[])
     solve_times = []
     bar = None
     if progress:
@@ -190,6 +246,10 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                            ('delta_plan', getattr(ctrl, 'plan_delta', math.nan)),
                            ('T_cmd', command.drive_torque if command else math.nan)):
             log[key].append(value)
+        if sensors is not None:
+            for key, value in (('beta_seen', state.beta), ('r_seen', state.r),
+                               ('V_seen', state.V)):
+                log[key].append(value)
         if bar is not None:
             bar.update(1)
             if k % 100 == 0:
@@ -216,6 +276,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     out['max_abs_e_y_steady_m'] = metrics.max_abs_in_windows(data['t'], data['e_y'], windows)
     out['transition_time_s'] = metrics.transition_time(
         data['t'], data['beta'], math.radians(sc.metrics.drift_beta_deg + 10.0))
+    out['exit_time_s'] = metrics.exit_time(data['t'], data['beta'], data['beta_ref'])
     if sc.control_mode == 'torque_only':   # the NMPC's steering is a proposal (paper Sec. VI-B)
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_cmd'], data['delta'],
                                                windows))
@@ -225,4 +286,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                overrides=list(overrides), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=plant,
                plant_jit=bool(sim.plant.model and sim.plant.model.jit))
+    if sensors is not None:
+        out.update(sensors=sensors, estimator=estimator, sensor_faults=list(sensor_faults),
+                   estimator_summary=sim.summary())
     return out, data

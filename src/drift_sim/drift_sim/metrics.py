@@ -66,6 +66,25 @@ def max_abs_in_windows(t, values, windows) -> float:
     return float(sel.max()) if sel.size else math.nan
 
 
+def exit_time(t, beta, beta_ref, grip_beta: float = math.radians(3.0)) -> float:
+    """Time to leave the drift for grip driving [s]: from the sideslip reference's last moment
+    on its drift value (within 1 deg of its largest magnitude) to the first sample from which
+    ``|beta|`` stays below ``grip_beta`` to the end. NaN when the run does not end in grip
+    (reference or car)."""
+    t, beta = np.asarray(t, dtype=float), np.abs(np.asarray(beta, dtype=float))
+    ref = np.abs(np.asarray(beta_ref, dtype=float))
+    finite = np.isfinite(ref)
+    if not finite.any() or not ref[finite][-1] < grip_beta:
+        return math.nan
+    on_drift = np.flatnonzero(finite & (ref >= np.nanmax(ref) - math.radians(1.0)))
+    above = np.flatnonzero(~(beta < grip_beta))
+    if not on_drift.size or (above.size and above[-1] == len(t) - 1):
+        return math.nan
+    start = on_drift[-1]
+    end = max(above[-1] + 1, start) if above.size else start
+    return float(t[end] - t[start])
+
+
 def transition_time(t, beta, threshold: float) -> float:
     """Time to flip the drift: from the last ``|beta| > threshold`` on one side to the first on
     the other side [s]; NaN when the run has no such flip."""
