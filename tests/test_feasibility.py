@@ -66,3 +66,30 @@ def test_simulate_refuses_before_the_run_in_one_line(tmp_path, capsys):
     assert load_script('simulate').main(['--scenario', str(path), '--quiet']) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith('simulate: reference infeasible') and len(err.splitlines()) == 1
+
+
+def test_the_selector_keeps_its_sideslip_reference_holdable(tmp_path, caplog):
+    """Asked for more sideslip than the car can hold (45 deg on the 15 m circle), the selector
+    asks for the largest the map holds there: a reference the NMPC accepts, with a warning."""
+    import math
+
+    from drift_control.feasibility import sideslip_limit
+    from drift_control.signals import VehicleState
+    path = tmp_path / 'circle.yaml'
+    path.write_text(CIRCLE.replace('beta_deg: 30.0', 'beta_deg: 45.0'))
+    setup = load_setup(scenario='steady_dry', vehicle='m3_competition', path_file=str(path))
+    bounds = effective_bounds(setup.vehicle, setup.nmpc)
+    limit = sideslip_limit(setup.eqmap, bounds)
+    assert math.radians(30.0) < limit(15.0) < math.radians(45.0)
+    assert limit(15.5) == min(limit(15.0), limit(16.0))
+    selector = setup.build_selector()
+    selector.reset(s_hint=80.0)
+    s = 80.0    # past the entry ramp, on the circle (centre (0, 15), start heading +x)
+    angle = s / 15.0
+    x, y = 15.0 * math.sin(angle), 15.0 - 15.0 * math.cos(angle)
+    state = VehicleState(stamp=0.0, V=9.0, beta=math.radians(-30.0), r=0.6, x=x, y=y,
+                         yaw=angle + math.radians(30.0))
+    ref = selector.select(state)
+    assert abs(ref.target.beta) == pytest.approx(limit(1.0 / abs(ref.curvature_cmd)), abs=1e-9)
+    assert all(equilibrium_problem(e, bounds) is None for e in (ref.target, *ref.horizon))
+    assert 'limited to' in caplog.text

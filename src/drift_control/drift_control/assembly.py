@@ -114,9 +114,13 @@ class Setup:
         """The reference selector on the scenario's path and map, at the scenario's start."""
         if self.path is None or self.eqmap is None:
             raise ParamError('reference selector: needs a scenario (or path) and its map')
+        from drift_control.feasibility import sideslip_limit
+        from drift_control.ocp import effective_bounds
         # lookup_many is optional: a stand-in map may offer lookup alone
         selector = ReferenceSelector(self.eqmap.lookup, self.path, self.reference,
-                                     getattr(self.eqmap, 'lookup_many', None))
+                                     getattr(self.eqmap, 'lookup_many', None),
+                                     sideslip_limit(self.eqmap,
+                                                    effective_bounds(self.vehicle, self.nmpc)))
         selector.reset(s_hint=self.scenario.initial.s if self.scenario else None)
         return selector
 

@@ -89,6 +89,32 @@ def reference_problems(path, eqmap, bounds, radius_min: float, radius_max: float
     return _stretches(s, K, beta, why, step)
 
 
+def sideslip_limit(eqmap, bounds):
+    """``limit(radius [m]) -> |beta| [rad]``: the largest sideslip the car can hold at a radius.
+
+    Per map radius, the largest grid sideslip with a converged equilibrium within ``bounds``
+    (``equilibrium_problem``); between two map radii the smaller of theirs (conservative), 0
+    where only grip driving is left. The selector keeps its sideslip reference below this, so
+    a lateral correction towards a tighter radius asks for less sideslip instead of steering
+    past the lock (the NMPC refuses that reference and falls back).
+    """
+    delta, T_R, V = (eqmap.filled(name) for name in ('delta', 'T_R', 'V'))
+    tol = 1e-6
+    holdable = (eqmap.converged & (np.abs(delta) <= bounds.delta_max - tol)
+                & (T_R >= bounds.T_R_min + tol) & (T_R <= bounds.T_R_max - tol) & (V > 0.0))
+    beta = np.where(holdable, eqmap.beta_abs[:, None], 0.0).max(axis=0)   # per radius
+    radius = np.asarray(eqmap.radius, dtype=float)
+
+    def limit(R: float) -> float:
+        j = int(np.searchsorted(radius, R))
+        if j <= 0:
+            return float(beta[0])
+        if j >= len(radius):
+            return float(beta[-1])
+        return float(beta[j]) if radius[j] == R else float(min(beta[j - 1], beta[j]))
+    return limit
+
+
 def _highest_equilibria(eqmap) -> np.ndarray:
     """Per map radius: the largest sideslip with an equilibrium [rad] (-inf where none).
     Above it the map holds its neighbours' values, not equilibria."""
@@ -122,4 +148,5 @@ def describe(problems: list[Problem], vehicle: str, surface: str) -> str:
     return '\n'.join([head] + [f'  {p}' for p in problems])
 
 
-__all__ = ['Problem', 'describe', 'equilibrium_problem', 'reference_problems']
+__all__ = ['Problem', 'describe', 'equilibrium_problem', 'reference_problems',
+           'sideslip_limit']

@@ -130,12 +130,17 @@ class ReferenceSelector:
         ``lookup_many([(beta_abs, radius, direction), ...]) -> [(Equilibrium, clamped), ...]``,
         the same lookups in one call (``EquilibriumMap.lookup_many``: the horizon's 25 lookups
         evaluate the map's splines once).
+    beta_limit : callable, optional
+        ``beta_limit(radius) -> |beta|`` the car can hold there
+        (``feasibility.sideslip_limit``): the sideslip reference is kept below it.
     """
 
     def __init__(self, lookup: Lookup, path: Path, params: ReferenceParams,
-                 lookup_many: Callable | None = None):
+                 lookup_many: Callable | None = None,
+                 beta_limit: Callable[[float], float] | None = None):
         self._lookup, self.path, self.p = lookup, path, params
         self._lookup_many = lookup_many
+        self._beta_limit = beta_limit
         self.frenet = Frenet(path, params.window_back, params.window_forward, params.lost_distance)
         self._warn = _Throttled(params.warn_interval)
         self._last: Reference | None = None
@@ -174,6 +179,19 @@ class ReferenceSelector:
         left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
         return _blend(left, right, w), Direction.NONE, c_l or c_r
+
+    def _holdable(self, beta_abs: float, K_cmd: float, s: float) -> float:
+        """The path's sideslip, or less where the car cannot hold it at this radius."""
+        if self._beta_limit is None:
+            return beta_abs
+        limit = self._beta_limit(self._radius(K_cmd))
+        if beta_abs > limit:
+            self._warn.warning('limit', 'reference: sideslip %.1f deg limited to %.1f deg at '
+                               's=%.1f m, R=%.1f m: beyond it the car cannot hold the drift '
+                               '(steering lock or torque)', math.degrees(beta_abs),
+                               math.degrees(limit), s, self._radius(K_cmd))
+            return limit
+        return beta_abs
 
     def _path_side(self, beta_abs: float, K_path: float) -> bool:
         """Whether the side comes from the path's curvature: in a drift, so the lateral
@@ -223,7 +241,7 @@ class ReferenceSelector:
                                  min(p.integral_limit, self._integral + side * fp.e_y * dt))
         if limited:
             K_cmd = _limit(last.curvature_cmd, K_cmd, p.curvature_rate_max * dt)
-        beta_abs = float(self.path.beta_at(fp.s))
+        beta_abs = self._holdable(float(self.path.beta_at(fp.s)), K_cmd, fp.s)
         if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
@@ -271,6 +289,8 @@ class ReferenceSelector:
         for K_path, beta_path in zip(K_paths.tolist(), np.broadcast_to(betas, s_k.shape).tolist()):
             K_k = max(-k_max, min(k_max, K_path - correction))
             K = K + max(-dK, min(dK, K_k - K))
+            if self._beta_limit is not None:
+                beta_path = min(beta_path, self._beta_limit(self._radius(K)))
             beta = beta + max(-dbeta, min(dbeta, beta_path - beta))
             u = max(0.0, min(1.0, 0.5 * (1.0 + (K_path if self._path_side(beta, K_path) else K)
                                          / band)))
