@@ -116,11 +116,11 @@ class Setup:
             raise ParamError('reference selector: needs a scenario (or path) and its map')
         from drift_control.feasibility import sideslip_limit
         from drift_control.ocp import effective_bounds
-        # lookup_many is optional: a stand-in map may offer lookup alone
+        # lookup_many and the grid are optional: a stand-in map may offer lookup alone
+        limit = sideslip_limit(self.eqmap, effective_bounds(self.vehicle, self.nmpc)) \
+            if hasattr(self.eqmap, 'filled') else None
         selector = ReferenceSelector(self.eqmap.lookup, self.path, self.reference,
-                                     getattr(self.eqmap, 'lookup_many', None),
-                                     sideslip_limit(self.eqmap,
-                                                    effective_bounds(self.vehicle, self.nmpc)))
+                                     getattr(self.eqmap, 'lookup_many', None), limit)
         selector.reset(s_hint=self.scenario.initial.s if self.scenario else None)
         return selector
 
