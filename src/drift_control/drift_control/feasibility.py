@@ -11,6 +11,7 @@ gap between the grip and drift branches on every path, and is driven through.)
 """
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,16 +103,16 @@ def sideslip_limit(eqmap, bounds):
     tol = 1e-6
     holdable = (eqmap.converged & (np.abs(delta) <= bounds.delta_max - tol)
                 & (T_R >= bounds.T_R_min + tol) & (T_R <= bounds.T_R_max - tol) & (V > 0.0))
-    beta = np.where(holdable, eqmap.beta_abs[:, None], 0.0).max(axis=0)   # per radius
-    radius = np.asarray(eqmap.radius, dtype=float)
+    beta = np.where(holdable, eqmap.beta_abs[:, None], 0.0).max(axis=0).tolist()   # per radius
+    radius = np.asarray(eqmap.radius, dtype=float).tolist()
 
-    def limit(R: float) -> float:
-        j = int(np.searchsorted(radius, R))
+    def limit(R: float) -> float:   # asked per horizon stage: plain floats, no numpy call
+        j = bisect.bisect_left(radius, R)
         if j <= 0:
-            return float(beta[0])
+            return beta[0]
         if j >= len(radius):
-            return float(beta[-1])
-        return float(beta[j]) if radius[j] == R else float(min(beta[j - 1], beta[j]))
+            return beta[-1]
+        return beta[j] if radius[j] == R else min(beta[j - 1], beta[j])
     return limit
 
 
