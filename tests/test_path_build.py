@@ -121,7 +121,8 @@ def test_every_shipped_path_file_loads():
     for f in files:
         path = P.load_path(load_yaml(f)['path'], os.path.basename(f))
         assert np.all(np.isfinite(path.K)) and path.length > 50.0
-        assert path.beta_at(1e3) > math.radians(20)
+        # a drift somewhere after the entry (an exit path ends in grip)
+        assert np.max(path.beta_at(np.arange(0.0, path.length + 200.0, 1.0))) > math.radians(20)
 
 
 def test_segments_yaml():
@@ -162,3 +163,52 @@ def test_scenario_path_is_inline_or_a_paths_file(tmp_path):
         resolve_path(None, tmp_path, 'none')
     with pytest.raises(ParamError, match='not found'):
         resolve_path('nosuch', tmp_path, 'nosuch')
+
+
+def test_planned_sides_flip_where_the_curves_reverse_as_the_curvature_blend_does():
+    """On the alternating clothoid the planned flip (20.25 m, centred at the inflection) is the
+    selector's curvature blend (|K| < 0.045 over the linear clothoid) to within half a percent."""
+    path = P.alternating(15.0, 30.0, 1.0, 1.0)
+    band = 0.045
+    u = np.clip(0.5 * (1.0 + path.K / band), 0.0, 1.0)
+    blend = u * u * (3.0 - 2.0 * u)
+    planned = path.with_planned_sides(20.25, 0.01).side
+    assert np.max(np.abs(planned - blend)) < 0.005
+
+
+def test_planned_sides_keep_a_wide_curve_on_its_own_side_and_flip_mid_straight():
+    k = 1.0 / 15.0
+    segs = [(40.0, k, k),              # left R 15
+            (20.0, 0.0, 0.0),          # straight between two left curves: stays left
+            (40.0, k, k),
+            (10.0, k, -1.0 / 35.0),    # into a wide right curve (R 35)
+            (60.0, -1.0 / 35.0, -1.0 / 35.0),
+            (40.0, 0.0, 0.0),          # straight between right and left: flips at its middle
+            (40.0, k, k)]
+    path = P.from_segments(segs).with_planned_sides(20.0, 0.01)
+    side = path.side_at
+    assert side(20.0) == 1.0 and side(50.0) == 1.0             # no flip on the first straight
+    assert side(140.0) == 0.0                                   # the wide right curve is right
+    mid = 40.0 + 20.0 + 40.0 + 10.0 + 60.0 + 20.0               # the second straight's middle
+    assert side(mid) == pytest.approx(0.5, abs=0.01)
+    assert side(mid - 10.5) == 0.0 and side(mid + 10.5) == 1.0
+    mirrored = path.mirrored()
+    assert mirrored.side_at(140.0) == 1.0
+    with pytest.raises(ParamError, match='closer than flip_length'):
+        P.from_segments(segs).with_planned_sides(120.0, 0.01)
+
+
+def test_a_closed_figure8_flips_once_at_each_crossing_even_across_the_seam():
+    path = P.figure8(R, 30.0).with_planned_sides(20.0, 0.01)
+    half = path.length / 2.0
+    assert path.side_at(0.0) == pytest.approx(0.5, abs=0.01)      # the crossing at the seam
+    assert path.side_at(half) == pytest.approx(0.5, abs=0.01)
+    assert path.side_at(0.5 * half) == 1.0 and path.side_at(1.5 * half) == 0.0
+
+
+def test_flip_length_is_read_from_the_path_file():
+    raw = {'type': 'alternating', 'radius': 15.0, 'transition': 30.0, 'flip_length': 20.0}
+    assert P.load_path(raw).side is not None
+    assert P.load_path({k: v for k, v in raw.items() if k != 'flip_length'}).side is None
+    with pytest.raises(ParamError, match='flip_length'):
+        P.load_path({**raw, 'flip_length': -1.0})

@@ -359,3 +359,19 @@ def test_a_car_beside_a_straight_in_grip_is_steered_back(side):
     ref = ReferenceSelector(steady_circle_lookup, drifting, params()).select(
         state_on(drifting, 50.0, e_y=side * 2.0, beta=0.0))
     assert ref.target.r == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_drift_on_a_wide_curve_is_on_its_planned_side():
+    """A 35 m right curve is inside the curvature blend (|K| < 0.045): without a plan its
+    reference is a blend of left and right, with planned sides (flip_length) a right drift."""
+    k = 1.0 / 15.0
+    segs = [(60.0, k, k), (20.0, k, -1.0 / 35.0), (120.0, -1.0 / 35.0, -1.0 / 35.0)]
+    prof = P.SideslipProfile(math.radians(30.0))
+    for planned, direction in ((False, Direction.NONE), (True, Direction.RIGHT)):
+        path = P.from_segments(segs, sideslip=prof)
+        path = path.with_planned_sides(20.0, 0.01) if planned else path
+        sel = ReferenceSelector(steady_circle_lookup, path, params(side_band=0.045))
+        sel.reset(s_hint=140.0)
+        ref = sel.select(state_on(path, 140.0))
+        assert ref.direction == direction
+    assert ref.target.beta > 0.0 and ref.target.r < 0.0   # right: beta > 0, turning clockwise

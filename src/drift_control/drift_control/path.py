@@ -90,6 +90,9 @@ class Path:
         Desired sideslip magnitude along ``s``.
     name : str
         For logs and plots.
+    side : numpy.ndarray, optional
+        Planned drift side per sample, the left weight (1 left, 0 right, in between a flip:
+        ``plan_sides``); None: the side follows the curvature (the selector's ``side_band``).
     """
 
     x: np.ndarray
@@ -100,6 +103,7 @@ class Path:
     closed: bool
     sideslip: SideslipProfile = field(default_factory=lambda: SideslipProfile(0.0))
     name: str = ''
+    side: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.x)
@@ -145,6 +149,11 @@ class Path:
         # from the sample before, not between unwrapped samples: psi jumps at a closed seam
         return wrap_angle(self.psi[i0] + w * self.ds * 0.5 * (self.K[i0] + self.K[i1]))
 
+    def side_at(self, s):
+        """Planned left weight of the drift side at ``s`` [-], linear between samples."""
+        i0, i1, w = self._segment(s)
+        return (1.0 - w) * self.side[i0] + w * self.side[i1]
+
     def beta_at(self, s):
         """Desired sideslip magnitude [rad] at unwrapped arc length ``s`` [m]."""
         return self.sideslip.beta_abs(s, self.lap_position(s), self.length, self.closed)
@@ -156,7 +165,76 @@ class Path:
     def mirrored(self) -> 'Path':
         """The path reflected about the map x axis: left turns become right turns."""
         return replace(self, y=-self.y, psi=-self.psi, K=-self.K,
+                       side=None if self.side is None else 1.0 - self.side,
                        name=f'{self.name} (mirrored)')
+
+    def with_planned_sides(self, flip_length: float, K_straight: float) -> 'Path':
+        """The path with its drift sides planned (``plan_sides``)."""
+        return replace(self, side=plan_sides(self.K, self.ds, self.closed, flip_length,
+                                             K_straight, self.name))
+
+
+def plan_sides(K, ds: float, closed: bool, flip_length: float, K_straight: float,
+               name: str = '') -> np.ndarray:
+    """The drift side along a path: the left weight per sample [-].
+
+    A curve (``|K| >= K_straight``) is drifted on its own side; a straighter stretch keeps the
+    side of the curves around it, or, between curves of opposite sides, flips at its middle (a
+    clothoid from one side to the other: where the curvature crosses zero). Each flip is a
+    smoothstep over ``flip_length`` [m] centred there: the sides are planned along the path, so
+    a drift on a wide curve (small ``|K|``) is a drift on its side, not a blend of both.
+    """
+    K = np.asarray(K, dtype=float)
+    n = len(K)
+    d = np.where(K >= K_straight, 1, np.where(K <= -K_straight, -1, 0))
+    if not d.any():
+        return np.full(n, 0.5)   # no curve: no side (left and right blended, as without a plan)
+    if closed:   # start the lap on a curve: a straight across the seam is then one stretch
+        shift = int(np.flatnonzero(d)[0])
+        return np.roll(_sides(np.roll(d, -shift), ds, flip_length, name, True), shift)
+    return _sides(d, ds, flip_length, name, False)
+
+
+def _sides(d, ds: float, flip_length: float, name: str, wrap: bool) -> np.ndarray:
+    """``plan_sides`` on directions ``d`` (+1, -1, 0 straight) that start on a curve when
+    ``wrap`` (a closed lap: the last stretch continues into the first sample)."""
+    n = len(d)
+    curved = np.flatnonzero(d)
+    filled = d.copy()
+    runs = np.split(np.arange(n), np.flatnonzero(np.diff((d == 0).astype(int))) + 1)
+    for run in runs:
+        if d[run[0]] != 0:
+            continue
+        before = curved[curved < run[0]]
+        after = curved[curved > run[-1]]
+        if wrap and not after.size:   # the lap's last stretch: the next curve is the first
+            after = curved[:1]
+        prev = d[before[-1]] if before.size else d[after[0]]
+        nxt = d[after[0]] if after.size else prev
+        mid = (run[0] + run[-1] + 1) // 2
+        filled[run] = np.where(run < mid, prev, nxt) if prev != nxt else prev
+    change = [c for c in np.flatnonzero(np.diff(filled)) + 1]
+    if wrap and filled[-1] != filled[0]:
+        change.append(n)   # a flip at the seam
+    s = np.arange(n) * ds
+    length = n * ds
+    w = (filled + 1) / 2.0
+    out = w.copy()
+    for i, c in enumerate(change):
+        for other in change[i + 1:]:
+            gap = (other - c) * ds
+            if wrap:
+                gap = min(gap, length - gap)
+            if gap < flip_length:
+                raise ParamError(f'path {name}: flips at s = {c * ds:.1f} and {other * ds:.1f} m '
+                                 f'are closer than flip_length {flip_length} m')
+        a, b = w[c - 1], w[c % n]
+        off = s - (c - 0.5) * ds   # the flip's centre: between samples c - 1 and c
+        if wrap:
+            off = (off + 0.5 * length) % length - 0.5 * length
+        inside = np.abs(off) < 0.5 * flip_length
+        out[inside] = a + (b - a) * _smoothstep(off[inside] / flip_length + 0.5)
+    return out
 
 
 def wrap_angle(a):
@@ -311,7 +389,8 @@ def polyline(points, closed: bool = False, smoothing: float = 0.0, ds: float = 0
 
 # --- YAML ---------------------------------------------------------------------------------------
 
-_COMMON = {'type', 'ds', 'start', 'sideslip', 'name'}
+_COMMON = {'type', 'ds', 'start', 'sideslip', 'name', 'flip_length'}
+STRAIGHT_RADIUS = 100.0   # with planned sides, a stretch straighter than this takes its neighbours' [m]
 _TYPES = {
     'circle': {'radius', 'direction'},
     'alternating': {'radius', 'transition', 'laps_first', 'laps_second', 'first', 'entry'},
@@ -387,7 +466,17 @@ def load_path(raw: dict, where: str = 'path') -> Path:
         start: [0.0, 0.0, 0.0]     # x [m], y [m], yaw [deg]
         ds: 0.1                    # sample spacing [m]
         sideslip: {beta_deg: 30.0, entry_beta_deg: 2.0, grip_until: 20.0, ramp_length: 15.0}
+        flip_length: 20.0          # optional [m]: plan the drift sides along the path, each
+                                   # flip over this length (``plan_sides``)
     """
+    path = _build_path(raw, where)
+    if 'flip_length' in raw:
+        path = path.with_planned_sides(_number(raw, 'flip_length', where, positive=True),
+                                       1.0 / STRAIGHT_RADIUS)
+    return path
+
+
+def _build_path(raw: dict, where: str) -> Path:
     _check_keys(raw, _COMMON | set().union(*_TYPES.values()), where)
     kind = raw.get('type')
     if kind not in _TYPES:

@@ -245,7 +245,12 @@ class ReferenceSelector:
         if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
-        w = self.side_weight(fp.K if self._path_side(beta_abs, fp.K) else K_cmd)
+        if not self._path_side(beta_abs, fp.K):
+            w = self.side_weight(K_cmd)
+        elif self.path.side is not None:   # sides planned along the path
+            w = float(self.path.side_at(fp.s))
+        else:
+            w = self.side_weight(fp.K)
         if limited and self._w is not None:
             w = _limit(self._w, w, p.side_rate_max * dt)
         self._w = w
@@ -283,18 +288,23 @@ class ReferenceSelector:
         # the path along the whole horizon in one call each; the limits run stage by stage
         s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
         K_paths, betas = self.path.curvature_at(s_k), self.path.beta_at(s_k)
+        planned = self.path.side_at(s_k).tolist() if self.path.side is not None else None
         # _limit and side_weight written out: 24 stages a cycle, the same operations
         dK, dbeta, dw = p.curvature_rate_max * h, p.beta_rate_max * h, p.side_rate_max * h
         band = p.side_band or 1.0 / p.radius_max
-        for K_path, beta_path in zip(K_paths.tolist(), np.broadcast_to(betas, s_k.shape).tolist()):
+        for k, (K_path, beta_path) in enumerate(zip(K_paths.tolist(),
+                                                    np.broadcast_to(betas, s_k.shape).tolist())):
             K_k = max(-k_max, min(k_max, K_path - correction))
             K = K + max(-dK, min(dK, K_k - K))
             if self._beta_limit is not None:
                 beta_path = min(beta_path, self._beta_limit(self._radius(K)))
             beta = beta + max(-dbeta, min(dbeta, beta_path - beta))
-            u = max(0.0, min(1.0, 0.5 * (1.0 + (K_path if self._path_side(beta, K_path) else K)
-                                         / band)))
-            side = u * u * (3.0 - 2.0 * u)
+            on_path = self._path_side(beta, K_path)
+            if on_path and planned is not None:
+                side = planned[k]
+            else:
+                u = max(0.0, min(1.0, 0.5 * (1.0 + (K_path if on_path else K) / band)))
+                side = u * u * (3.0 - 2.0 * u)
             w = w + max(-dw, min(dw, side - w))
             queries.append((beta, K, w))
             weights.append(w)
