@@ -587,3 +587,16 @@ def test_lockstep_trigger_once_per_period_with_the_matching_reference():
     assert trig.poll(100.026), 'no reference: solve anyway after reference_wait'
     assert trig.fired() == 0.02
     assert not trig.on_reference(0.02), 'nothing pending'
+
+
+def test_a_failing_preparation_costs_time_not_the_cycle(vp, params, eq30, monkeypatch):
+    ctrl = Nmpc(vp, params)
+    x = perturbed_start(eq30)
+    ctrl.step(measure(x, 0.0), Reference(0.0, eq30, Direction.LEFT), 0.0)
+
+    def broken(*args):
+        raise RuntimeError('no memory')
+    monkeypatch.setattr(ctrl._solver, 'prepare', broken)
+    ctrl.prepare()   # logged, not raised
+    res = ctrl.step(measure(x, TS), Reference(TS, eq30, Direction.LEFT), TS)
+    assert res.status == NmpcStatus.OK

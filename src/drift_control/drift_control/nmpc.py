@@ -158,8 +158,13 @@ class Nmpc:
         real-time iteration's preparation phase). Optional: ``step`` does whatever was not
         prepared, and its command is the same bit for bit either way."""
         self._predict()
-        if self._w is not None:
+        if self._w is None:
+            return
+        try:
             self._solver.prepare(self._warm_guess(), self.mu)
+        except Exception as err:   # never the node's end: the next step linearises itself
+            log.warning('NMPC preparation failed (%s: %s); the next step does all its work',
+                        type(err).__name__, err)
 
     def _propagate_torque(self, request: float, state) -> float:
         """Wheel torque after one period of ``request`` through the powertrain lag (exact)."""
