@@ -164,6 +164,7 @@ class RtiSolver:
         if self.iteration is None:
             return
         prep = self.iteration[0]
+        self._prepared = None   # until this preparation is complete
         prep.inputs[0][:] = np.asarray(w, dtype=float) / self.D
         prep.inputs[1][0] = mu
         prep()
