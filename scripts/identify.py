@@ -55,6 +55,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from drift_control import sysid
+    from drift_control.powertrain_fit import fit_powertrain
+    from drift_control.prediction import predict
     from drift_control.params import (ParamError, config_dir, load_surface, load_vehicle,
                                       load_yaml, vehicle_file)
     from drift_tools.bag import read_bag
@@ -97,8 +99,8 @@ def main(argv=None) -> int:
     try:
         fit = sysid.identify(log, prior, mu, names)
         train, held = sysid.split(log, sysid.SysIdSettings())
-        pred_fit = sysid.predict(fit.vehicle, log, held, mu)
-        pred_prior = sysid.predict(prior, log, held, mu)
+        pred_fit = predict(fit.vehicle, log, held, mu)
+        pred_prior = predict(prior, log, held, mu)
     except sysid.IdentificationError as err:
         return _fail(str(err), 1)
 
@@ -107,8 +109,8 @@ def main(argv=None) -> int:
     out = Path(args.out) if args.out else report / f'{stem}.yaml'
     report.mkdir(parents=True, exist_ok=True)
     out.parent.mkdir(parents=True, exist_ok=True)
-    summary = _summary(bag, info, args, surface, mu, log, fit, pred_fit, pred_prior,
-                       sysid.SysIdSettings().horizon_s)
+    summary = _summary(bag, info, args, surface, mu, log, fit, fit_powertrain(log), pred_fit,
+                       pred_prior, sysid.SysIdSettings().horizon_s)
     raw = load_yaml(vfile)
     for p in fit.params:
         _set(raw, p.name, float(f'{p.value:.4g}'))
@@ -147,10 +149,9 @@ def _set(raw: dict, dotted: str, value: float) -> None:
     node[last] = value
 
 
-def _summary(bag, info, args, surface, mu, log, fit, pred_fit, pred_prior,
+def _summary(bag, info, args, surface, mu, log, fit, lag, pred_fit, pred_prior,
              horizon_s: float) -> dict:
     deg = math.degrees
-    lag = fit.lag
     return {
         'bag': str(bag.resolve()),
         'scenario': (info or {}).get('scenario', ''),

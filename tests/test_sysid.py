@@ -12,6 +12,8 @@ import pytest
 from drift_control import sysid
 from drift_control.model_plant import ModelPlant
 from drift_control.params import ParamError, load_vehicle
+from drift_control.powertrain_fit import fit_powertrain
+from drift_control.prediction import predict
 from drift_control.vehicle import NX, VehicleModel, X
 from drift_sim.manoeuvre import Manoeuvre, ScriptedDriver, Segment, load_manoeuvre
 
@@ -81,8 +83,8 @@ def test_the_fit_finds_the_tyres_of_the_car_that_drove(fit, full_log):
 def test_identified_model_predicts_held_out_driving_better_than_the_data_sheet(fit, full_log,
                                                                                   prior):
     _, held = sysid.split(full_log, SETTINGS)
-    ident = sysid.predict(fit.vehicle, full_log, held, 1.0, SETTINGS)
-    sheet = sysid.predict(prior, full_log, held, 1.0, SETTINGS)
+    ident = predict(fit.vehicle, full_log, held, 1.0, SETTINGS)
+    sheet = predict(prior, full_log, held, 1.0, SETTINGS)
     assert len(ident.t0) >= 10
     assert ident.rms_r < 0.5 * sheet.rms_r
     assert ident.rms_beta < 0.5 * sheet.rms_beta
@@ -147,11 +149,11 @@ def test_powertrain_delay_and_lag_are_recovered():
         state = a * state + (1 - a) * T_cmd[max(i - 3, 0)]
     z = np.zeros(n)
     log = sysid.Log(t, z + 10, z, z, z, z, z, T + rng.normal(0, 10.0, n), T_cmd)
-    lag = sysid.fit_powertrain(log)
+    lag = fit_powertrain(log)
     assert lag.delay == pytest.approx(0.03, abs=1e-9)
     assert lag.tau == pytest.approx(0.08, abs=max(lag.tau_ci95, 0.002))
     assert lag.torque_lag == pytest.approx(0.11, abs=0.005)
-    assert sysid.fit_powertrain(sysid.Log(t, *[z] * 7, np.full(n, np.nan))) is None
+    assert fit_powertrain(sysid.Log(t, *[z] * 7, np.full(n, np.nan))) is None
 
 
 def test_the_manoeuvre_files_load_and_a_bad_key_is_named(tmp_path):

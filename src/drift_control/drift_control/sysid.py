@@ -10,8 +10,9 @@ equilibrium, so an open-loop prediction over seconds diverges and its error surf
 the one-step equation error is smooth, fast (one mapped casadi call per iteration) and uses
 every sample. Multi-step predictions judge the result on held-out blocks of the log.
 
-The powertrain (request -> applied drive torque) is fitted separately as a transport delay and
-a first-order lag. Confidence intervals come from the Jacobian at the optimum, with the
+The powertrain (request -> applied drive torque) is fitted separately
+(``drift_control.powertrain_fit``), and the result is judged by multi-step predictions on held-out
+data (``drift_control.prediction``). Confidence intervals come from the Jacobian at the optimum, with the
 covariance inflated by the residuals' correlation time (smoothed, serially correlated residuals
 hold fewer independent samples than the log has rows). A parameter the log cannot identify is
 refused with ``IdentificationError`` naming it and why.
@@ -31,7 +32,7 @@ from scipy.signal import savgol_filter
 
 from drift_control.params import VehicleParams
 from drift_control.tyre import lateral_peak_slip
-from drift_control.vehicle import NTHETA, NU, NX, THETA, U, X, VehicleModel, rhs, slips
+from drift_control.vehicle import NTHETA, NU, NX, THETA, U, X, rhs, slips
 
 # what the fit may change, with the bounds it keeps to (physical ranges of each coefficient)
 FITTABLE = {
@@ -248,27 +249,11 @@ class ParamFit:
 
 
 @dataclass(frozen=True)
-class LagFit:
-    """Powertrain: request -> applied torque as a transport delay and a first-order lag."""
-
-    delay: float          # [s]
-    tau: float            # [s]
-    tau_ci95: float       # [s]
-    rms: float            # [Nm]
-
-    @property
-    def torque_lag(self) -> float:
-        """The one first-order lag the NMPC models (``nmpc.torque_lag``): lag plus delay [s]."""
-        return self.delay + self.tau
-
-
-@dataclass(frozen=True)
 class Fit:
     """What ``identify`` found."""
 
     vehicle: VehicleParams             # the prior with the fitted values in
     params: tuple[ParamFit, ...]
-    lag: LagFit | None
     rms_train: dict                    # per channel, unweighted
     rms_held: dict
     n_train: int
@@ -282,7 +267,7 @@ def _rms(e) -> dict:
     return {c: float(np.sqrt(np.mean(e[:, i] ** 2))) for i, c in enumerate(CHANNELS)}
 
 
-def _correlation_time(res: np.ndarray, max_lag: int = 300) -> float:
+def correlation_time(res: np.ndarray, max_lag: int = 300) -> float:
     """Integrated autocorrelation time of residual series (n, k), in samples, >= 1."""
     taus = []
     for col in res.T:
@@ -328,44 +313,6 @@ def _check_evidence(ev: dict, names, s: SysIdSettings) -> None:
             f"{', '.join(front)}: the front tyres never near their grip limit in the log (slip "
             f"angle {ev['front_max_deg']:.1f} deg, peak {ev['front_peak_deg']:.1f} deg); drive the "
             'constant-steer circles up to the limit')
-
-
-def fit_powertrain(log: Log, delays=np.arange(0.0, 0.205, 0.01)) -> LagFit | None:
-    """Delay and lag of the applied torque behind the request; None without requests.
-
-    For each delay on the grid the lag is a least-squares fit of the exact discrete first-order
-    response to the recorded (held) requests; the delay with the least residual wins.
-    """
-    ok = np.isfinite(log.T_cmd)
-    if ok.sum() < 100 or np.ptp(log.T_cmd[ok]) < 100.0:
-        return None
-    start = int(np.argmax(ok))
-    u, y, dt = log.T_cmd[start:], log.T[start:], log.dt
-
-    def response(tau, d):
-        k = int(round(d / dt))
-        shifted = np.concatenate([np.full(k, u[0]), u[:len(u) - k]])
-        a = math.exp(-dt / tau)
-        out = np.empty(len(u))
-        state = y[0]
-        for i, v in enumerate(shifted):      # the exact ZOH step of T' = (u - T) / tau
-            out[i] = state
-            state = a * state + (1.0 - a) * v
-        return out
-
-    best = None
-    for d in delays:
-        sol = least_squares(lambda z: response(z[0], d) - y, [0.08], bounds=([0.005], [1.0]),
-                            diff_step=1e-3)
-        if best is None or sol.cost < best[1].cost:
-            best = (d, sol)
-    d, sol = best
-    res = sol.fun
-    J = sol.jac
-    tau_corr = _correlation_time(res[:, None])
-    var = float(res @ res) / max(len(res) - 2, 1) * tau_corr
-    ci = 1.96 * math.sqrt(var / max(float(J[:, 0] @ J[:, 0]), 1e-30))
-    return LagFit(float(d), float(sol.x[0]), ci, float(np.sqrt(np.mean(res ** 2))))
 
 
 def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
@@ -426,7 +373,7 @@ def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
         problem.weights = np.sqrt(np.mean((problem.predicted(q) - problem.xdot) ** 2, axis=0))
     res = problem.residuals(q)
     J = problem.jacobian(q)
-    tau_corr = _correlation_time(res.reshape(len(CHANNELS), -1).T)
+    tau_corr = correlation_time(res.reshape(len(CHANNELS), -1).T)
     dof = max(len(res) - len(q), 1)
     sigma2 = float(res @ res) / dof * tau_corr
     JTJ = J.T @ J
@@ -452,58 +399,6 @@ def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
     e_train = problem.predicted(q) - problem.xdot
     params = tuple(ParamFit(n, float(v), float(c), float(p0))
                    for n, v, c, p0 in zip(names, q, ci, [value_of(prior, n) for n in names]))
-    return Fit(fitted, params, fit_powertrain(log), _rms(e_train), _rms(e_held),
+    return Fit(fitted, params, _rms(e_train), _rms(e_held),
                int(train.sum()), int(held.sum()), tau_corr, time.perf_counter() - wall0,
                {'prior': evidence, 'fitted': evidence_fit})
-
-
-# --- validation: multi-step predictions on held-out data ---------------------------------------
-
-@dataclass(frozen=True)
-class Prediction:
-    """Open-loop predictions from measured states under measured inputs."""
-
-    t0: np.ndarray            # start times [s]
-    r: np.ndarray             # predicted yaw rate (windows, steps) [rad/s]
-    beta: np.ndarray          # predicted sideslip [rad]
-    r_meas: np.ndarray
-    beta_meas: np.ndarray
-
-    @property
-    def rms_r(self) -> float:
-        return float(np.sqrt(np.mean((self.r - self.r_meas) ** 2)))
-
-    @property
-    def rms_beta(self) -> float:
-        return float(np.sqrt(np.mean((self.beta - self.beta_meas) ** 2)))
-
-
-def predict(vehicle: VehicleParams, log: Log, mask: np.ndarray, mu: float,
-            settings: SysIdSettings = SysIdSettings()) -> Prediction:
-    """Multi-step predictions of ``horizon_s`` from every ``stride_s`` inside ``mask``.
-
-    Each starts at the smoothed measured state and runs the model (RK4, the NMPC's front-wheel
-    treatment) under the measured steering rate and applied torque; a window counts only when
-    all of it lies inside ``mask``.
-    """
-    s = settings
-    data = smooth(log, s.window_s)
-    dt = log.dt
-    H = int(round(s.horizon_s / dt))
-    stride = max(1, int(round(s.stride_s / dt)))
-    inside = np.convolve(mask.astype(int), np.ones(H + 1, int), 'valid') == H + 1
-    starts = [k for k in range(0, len(inside), stride) if inside[k]]
-    if not starts:
-        raise IdentificationError('held-out data: no stretch of '
-                                  f'{s.horizon_s:.2f} s to predict over')
-    model = VehicleModel(vehicle, 1, 'free_rolling')
-    sim = model.discrete(dt, 2).mapaccum(H)
-    theta = np.tile([[0.0], [mu]], (1, H))
-    r, beta = [], []
-    for k in starts:
-        traj = np.asarray(sim(data.x[k], data.u[k:k + H].T, theta))
-        r.append(traj[X.R])
-        beta.append(traj[X.BETA])
-    idx = np.array(starts)[:, None] + np.arange(1, H + 1)[None, :]
-    return Prediction(log.t[starts], np.array(r), np.array(beta), data.x[idx, X.R],
-                      data.x[idx, X.BETA])
