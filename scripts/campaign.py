@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from drift_control.params import ParamError, config_dir, vehicle_names
-from drift_control.scenario import scenario_names
+from drift_control.scenario import control_scenario_names
 from drift_sim.campaign import campaign_jobs, default_config, run_jobs
 from drift_sim.executor import ClusterError, check_address, interrupt, make_executor
 from drift_sim.store import RunStore
@@ -38,7 +38,8 @@ from drift_sim.sweep import ERROR, campaign_summary, format_campaign, parse_seed
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--scenario', action='append',
-                   help='name under config/scenarios (repeat; default: every scenario)')
+                   help='name under config/scenarios (repeat; default: every scenario the '
+                   'controller drives, not the identification manoeuvres)')
     p.add_argument('--vehicle', action='append',
                    help='config/vehicle/<name>.yaml (repeat; default: every vehicle)')
     p.add_argument('--seeds', default='0', help='run seeds, e.g. 0-9 or 0,3 (default 0)')
@@ -72,7 +73,7 @@ def main(argv=None) -> int:
     config = default_config(args.config_dir)
     try:
         seeds = parse_seeds(args.seeds)
-        scenarios = args.scenario or scenario_names(args.config_dir)
+        scenarios = args.scenario or control_scenario_names(args.config_dir)
         vehicles = args.vehicle or vehicle_names(args.config_dir)
         jobs = campaign_jobs(scenarios, vehicles, seeds, args.plants, args.set,
                              args.plant_seed, config)

@@ -7,7 +7,7 @@ from drift_control.assembly import load_setup
 from drift_control.feasibility import equilibrium_problem, reference_problems
 from drift_control.ocp import effective_bounds
 from drift_control.params import ParamError, config_dir, vehicle_names
-from drift_control.scenario import scenario_names
+from drift_control.scenario import control_scenario_names
 
 CIRCLE = (config_dir() / 'paths' / 'circle_left_15.yaml').read_text()
 
@@ -19,7 +19,7 @@ def _problems(setup):
 
 @pytest.mark.parametrize('vehicle', vehicle_names())
 def test_every_shipped_scenario_asks_for_drifts_the_car_can_hold(vehicle):
-    for name in scenario_names():
+    for name in control_scenario_names():
         setup = load_setup(scenario=name, vehicle=vehicle)
         assert _problems(setup) == [], (vehicle, name)
         setup.check_reference()
@@ -93,3 +93,11 @@ def test_the_selector_keeps_its_sideslip_reference_holdable(tmp_path, caplog):
     assert abs(ref.target.beta) == pytest.approx(limit(1.0 / abs(ref.curvature_cmd)), abs=1e-9)
     assert all(equilibrium_problem(e, bounds) is None for e in (ref.target, *ref.horizon))
     assert 'limited to' in caplog.text
+
+
+def test_an_identification_manoeuvre_is_not_a_controller_run():
+    from drift_control.scenario import scenario_names
+    manoeuvres = set(scenario_names()) - set(control_scenario_names())
+    assert 'sysid_dry' in manoeuvres and 'steady_dry' not in manoeuvres
+    with pytest.raises(ParamError, match='sysid_drive.py --scenario sysid_dry'):
+        load_setup(scenario='sysid_dry')

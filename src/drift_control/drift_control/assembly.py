@@ -151,6 +151,9 @@ def load_setup(config: str | os.PathLike | None = None, scenario: str = '',
     config = FsPath(config or config_dir())
     spec = (load_scenario_spec(scenario, overrides, config, seed, vehicle) if scenario
             else None)
+    if spec is not None and spec.is_manoeuvre:
+        raise ParamError(f'scenario {spec.name} is an identification manoeuvre (controller off): '
+                         f'drive it with scripts/sysid_drive.py --scenario {spec.name}')
     vehicle_name = spec.vehicle if spec else (vehicle or '')
     vfile = vehicle_file(vehicle_name or None, config)
     vehicle_name = vfile.stem

@@ -390,7 +390,7 @@ def polyline(points, closed: bool = False, smoothing: float = 0.0, ds: float = 0
 # --- YAML ---------------------------------------------------------------------------------------
 
 _COMMON = {'type', 'ds', 'start', 'sideslip', 'name', 'flip_length'}
-STRAIGHT_RADIUS = 100.0   # with planned sides, a stretch straighter than this takes its neighbours' [m]
+STRAIGHT_RADIUS = 100.0   # planned sides: a stretch straighter than this takes its neighbours' [m]
 _TYPES = {
     'circle': {'radius', 'direction'},
     'alternating': {'radius', 'transition', 'laps_first', 'laps_second', 'first', 'entry'},

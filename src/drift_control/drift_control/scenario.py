@@ -101,6 +101,11 @@ class Scenario:
     plant: dict[str, Any] = field(default_factory=dict)    # overrides of the vehicle's plant file
     driver: dict[str, Any] = field(default_factory=dict)   # overrides of config/sim/driver.yaml
 
+    @property
+    def is_manoeuvre(self) -> bool:
+        """A scripted identification manoeuvre (``driver.manoeuvre``): no controller drives it."""
+        return bool(self.driver.get('manoeuvre'))
+
     def __post_init__(self):
         require(self.duration > 0, f'scenario {self.name}.duration', 'must be positive')
         for w in self.metrics.steady:
@@ -123,6 +128,12 @@ def scenario_file(name: str, config: str | os.PathLike | None = None) -> FsPath:
 def scenario_names(config: str | os.PathLike | None = None) -> list[str]:
     """Names of the scenarios under ``config/scenarios``."""
     return sorted(p.stem for p in (FsPath(config or config_dir()) / 'scenarios').glob('*.yaml'))
+
+
+def control_scenario_names(config: str | os.PathLike | None = None) -> list[str]:
+    """The scenarios the controller drives: all but the identification manoeuvres."""
+    return [n for n in scenario_names(config)
+            if not load_scenario_spec(n, config=config).is_manoeuvre]
 
 
 def resolve_path(section, config: FsPath, where: str) -> Path:
@@ -167,4 +178,5 @@ def load_scenario_spec(name: str, overrides=(), config: str | os.PathLike | None
 
 
 __all__ = ['Fault', 'InitialState', 'MetricWindows', 'Scenario', 'SurfaceSpec',
-           'load_scenario_spec', 'resolve_path', 'scenario_file', 'scenario_names', 'surface_mu']
+           'control_scenario_names', 'load_scenario_spec', 'resolve_path', 'scenario_file',
+           'scenario_names', 'surface_mu']
