@@ -20,9 +20,9 @@ mode, delay = sys.argv[1], float(sys.argv[2])
 def stop(signum, frame):
     raise KeyboardInterrupt
 signal.signal(signal.SIGTERM, stop)
-print("up", flush=True)
 if mode == "ignore":
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+print("up", flush=True)   # its SIGTERM handling is in place
 if mode in ("crash", "finish"):
     time.sleep(delay)
     print("leaving", flush=True)
@@ -45,6 +45,13 @@ def run(children, duration=None, kill_timeout=5.0, stop_after=None, optional=())
     launcher = Launcher(out=out, colour=False, kill_timeout=kill_timeout)
     for name, argv, last in children:
         launcher.start(name, argv, env=None, stop_last=last, critical=name not in optional)
+    # the timings count from when every child handles SIGTERM (a loaded machine starts Python
+    # slowly: a signal before that kills it silently, and the test would judge the machine)
+    deadline = time.monotonic() + 30.0
+    while not all(any(line.startswith(f'[{name}]') and line.endswith(' up')
+                      for line in out.getvalue().splitlines()) for name, _, _ in children):
+        assert time.monotonic() < deadline, 'children did not come up'
+        time.sleep(0.01)
     if stop_after is not None:
         threading.Timer(stop_after, launcher.request_stop).start()
     t0 = time.monotonic()
