@@ -43,15 +43,29 @@ def main(argv=None) -> int:
     parser.add_argument('--trace', help='write the time series here (.npz)')
     parser.add_argument('--stop-on-spin', action='store_true')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
+    parser.add_argument('--sensors', metavar='NAME', help='see the car through '
+                        'config/sim/sensors/NAME.yaml (e.g. realistic) instead of the plant\'s '
+                        'noise and delay model')
+    parser.add_argument('--estimator', choices=('none', 'ekf'), default='none',
+                        help='with --sensors: fuse them (ekf) or pass the newest samples (none)')
+    parser.add_argument('--sensor-set', action='append', default=[], metavar='KEY=VALUE',
+                        help='override a sensor key (ins.channels.beta.std=0.003)')
+    parser.add_argument('--sensor-fault', action='append', default=[], metavar='FAULT',
+                        help='unit[.channel]:kind:start:end[:value], e.g. ins:dropout:30:31')
     parser.add_argument('--allow-infeasible', action='store_true',
                         help='run a path that asks for a drift the car cannot hold')
     args = parser.parse_args(argv)
+    if (args.estimator != 'none' or args.sensor_set or args.sensor_fault) and not args.sensors:
+        parser.error('--estimator, --sensor-set and --sensor-fault need --sensors')
     logging.basicConfig(level=logging.WARNING)
     try:
         out, trace = run_closed_loop(args.scenario, args.set, args.seed, args.controller,
                                      args.plant, args.config_dir, progress=not args.quiet,
                                      stop_on_spin=args.stop_on_spin, vehicle=args.vehicle,
-                                     refuse_infeasible=not args.allow_infeasible)
+                                     refuse_infeasible=not args.allow_infeasible,
+                                     sensors=args.sensors, estimator=args.estimator,
+                                     sensor_set=args.sensor_set,
+                                     sensor_faults=args.sensor_fault)
     except ParamError as err:
         print(f'simulate: {err}', file=sys.stderr)
         return 2

@@ -1,0 +1,108 @@
+#!/usr/bin/env python3
+"""Measures what the sensors and the state estimator do to the closed loop (issue 22).
+
+    .venv/bin/python scripts/estimator_eval.py --seeds 0 1 2 --out runs/estimator_eval.json
+    .venv/bin/python scripts/estimator_eval.py --seeds 0 --fault ins:dropout:30:31
+
+Per seed, one run each of (a) the plant's own measurement model (the default), (b) the realistic
+sensors handed to the NMPC as their newest samples, (c) the realistic sensors through the EKF;
+prints the NMPC torque request's std and mean |change| per 20 ms cycle in the steady window, the
+sideslip RMS error against the reference, the error of the sideslip the controller saw, the
+largest sideslip error in a fault window, and the estimator's NIS, events and cost per step.
+Runs one simulation at a time.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+import numpy as np
+
+from drift_sim.closed_loop import run_closed_loop
+
+CONFIGS = {'a': {}, 'b': {'sensors': 'realistic', 'estimator': 'none'},
+           'c': {'sensors': 'realistic', 'estimator': 'ekf'}}
+
+
+def torque_smoothness(t, T_cmd, window, period=0.02):
+    """Std and mean |change| per control period of the torque request in ``window`` [Nm]."""
+    start, end = window
+    keep = (t >= start) & (t < end)
+    T = T_cmd[keep]
+    step = max(1, int(round(period / (t[1] - t[0]))))
+    T = T[::step]
+    return float(np.std(T)), float(np.mean(np.abs(np.diff(T))))
+
+
+def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor_set=()):
+    kwargs = dict(CONFIGS[config])
+    if faults and 'sensors' in kwargs:
+        kwargs['sensor_faults'] = list(faults)
+    if config == 'c':
+        kwargs['estimator_set'] = list(estimator_set)
+    if 'sensors' in kwargs:
+        kwargs['sensor_set'] = list(sensor_set)
+    out, data = run_closed_loop(scenario, seed=seed, **kwargs)
+    t = data['t']
+    std, change = torque_smoothness(t, data['T_cmd'], window)
+    row = {'scenario': scenario, 'seed': seed, 'config': config, 'faults': list(faults),
+           'spun': out['spun'], 'beta_rms_error_deg': out['beta_rms_error_deg'],
+           'torque_std_Nm': std, 'torque_change_Nm': change,
+           'max_abs_e_y_steady_m': out['max_abs_e_y_steady_m']}
+    keep = (t >= window[0]) & (t < window[1])
+    beta_ref = data['beta_ref']
+    for fault in faults:
+        start, end = (float(v) for v in fault.split(':')[2:4])
+        inside = (t >= start) & (t < end + 0.5)
+        row[f'max_beta_error_deg {fault}'] = float(np.degrees(
+            np.nanmax(np.abs(data['beta'][inside] - beta_ref[inside]))))
+    if 'beta_seen' in data:
+        err = data['beta_seen'][keep] - data['beta'][keep]
+        row['beta_seen_rms_error_deg'] = float(np.degrees(np.sqrt(np.mean(err ** 2))))
+        row['r_seen_rms_error'] = float(np.sqrt(np.mean(
+            (data['r_seen'][keep] - data['r'][keep]) ** 2)))
+    summary = out.get('estimator_summary') or {}
+    if summary:
+        row['nis'] = summary['nis']
+        row['events'] = summary['events']
+        row.update({k: summary[k] for k in ('step_ms_mean', 'step_ms_p50', 'step_ms_p99')})
+    return row
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--scenario', default='steady_dry')
+    parser.add_argument('--seeds', type=int, nargs='+', default=[0])
+    parser.add_argument('--configs', nargs='+', default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument('--window', type=float, nargs=2, default=(20.0, 55.0))
+    parser.add_argument('--fault', action='append', default=[],
+                        help='a sensor fault for (b) and (c), e.g. ins:dropout:30:31')
+    parser.add_argument('--estimator-set', action='append', default=[], metavar='KEY=VALUE',
+                        help='override a key of config/estimator.yaml for (c)')
+    parser.add_argument('--sensor-set', action='append', default=[], metavar='KEY=VALUE',
+                        help='override a key of the sensor set for (b) and (c)')
+    parser.add_argument('--out', help='write the rows here (JSON)')
+    args = parser.parse_args(argv)
+    rows = []
+    for seed in args.seeds:
+        for config in args.configs:
+            row = evaluate(args.scenario, seed, config, args.window, args.fault,
+                           args.estimator_set, args.sensor_set)
+            rows.append(row)
+            brief = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()
+                     if k not in ('nis', 'events')}
+            print(json.dumps(brief), flush=True)
+            if 'nis' in row:
+                print('  NIS mean / share within 95 %:', {k: (round(v['mean'], 2),
+                      round(v['within_95'], 3)) for k, v in row['nis'].items()})
+                print('  events:', row['events'][:12], f'({len(row["events"])} in all)')
+    if args.out:
+        with open(args.out, 'w') as fh:
+            json.dump(rows, fh, indent=1, default=lambda v: None if not math.isfinite(v) else v)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,585 @@
+"""State estimator: the car's sensors fused into the ``VehicleState`` the controller consumes.
+
+An EKF on a kinematic model driven by the IMU (states: body velocity vx, vy at the CoG, heading
+psi, map position X, Y, and the IMU biases of ax, ay and yaw rate), aided by the INS/GNSS unit
+(speed, sideslip, yaw rate, pose) and the front axle's wheel speeds. Not the single-track model:
+its tyre forces need mu and tyre coefficients that differ from the car's (the plant is not the
+controller's model by design), and a model error in the estimate is what the NMPC's offset-free
+disturbance already learns; the IMU measures the forces instead (``docs/estimator.md`` gives
+the measured comparison). Wheel speeds, steering angle and drive torque get one small
+constant-rate Kalman filter each.
+
+Latency: the EKF runs at a fusion horizon ``horizon_delay`` behind now, where every sensor's
+samples have arrived, in stamp order; an output predictor carries it to the control instant
+with the IMU samples since (as PX4's EKF2 does). Each scalar innovation is tested: a sample
+beyond ``gate`` is rejected, a persistent or biased innovation is an IMU bias step (its bias
+uncertainty is reset), a signal repeating itself is frozen, a wheel reading zero under a
+moving car is stuck; each is named in ``events`` and the channel is left out until it recovers.
+
+Who owns what: this estimator owns the measured state (sensor noise, latency, sensor biases,
+sensor faults) and never uses the controller's model; the NMPC's disturbance ``d``
+(``drift_control.nmpc``) owns the model error of the single-track prediction.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import NamedTuple
+
+import numpy as np
+
+from drift_control.params import VehicleParams, from_dict, load_yaml, require, set_key, \
+    split_override
+from drift_control.signals import Validity, VehicleState
+
+# what each sensor unit sends, in order (the frames of config/can/drift_vehicle.dbc)
+FIELDS = {
+    'ins': ('V', 'beta', 'r', 'x', 'y', 'yaw'),
+    'imu': ('ax', 'ay', 'r'),
+    'wheels': ('FL', 'FR', 'RL', 'RR'),
+    'steering': ('delta', 'steering_torque'),
+    'torque': ('drive_torque',),
+}
+
+E = IntEnum('E', 'VX VY PSI X Y B_AX B_AY B_R', start=0)   # EKF state layout
+NE = len(E)
+
+
+class SensorSample(NamedTuple):
+    """One message of one sensor unit."""
+
+    unit: str                    # a key of FIELDS
+    stamp: float                 # the time the values describe [s] (arrival minus latency)
+    values: tuple[float, ...]    # in the order of FIELDS[unit], SI units
+
+
+class FaultEvent(NamedTuple):
+    """A sensor fault the estimator saw."""
+
+    t: float          # when it was detected [s]
+    channel: str      # 'ins.beta', 'imu.r', 'wheels.FL', ...
+    reason: str       # 'frozen', 'jump', 'bias step', 'stuck at zero', 'dropout'
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    """Noise the filter assumes and its fault tests (``config/estimator.yaml``)."""
+
+    horizon_delay: float        # fusion horizon behind now [s]: >= every sensor's latency
+    accel_std: float            # IMU acceleration noise + unmodelled (roll, lever arm) [m/s^2]
+    gyro_std: float             # IMU yaw rate noise [rad/s]
+    yaw_jerk: float             # the yaw rate filter's process noise [rad/s^3 / sqrt(s)]
+    accel_bias_walk: float      # [m/s^2 / sqrt(s)]
+    gyro_bias_walk: float       # [rad/s / sqrt(s)]
+    accel_bias_std0: float      # prior and reset std of the accelerometer biases [m/s^2]
+    gyro_bias_std0: float       # prior and reset std of the gyro bias [rad/s]
+    ins_std: dict[str, float]   # weight of each INS channel (V, beta, r, x, y, yaw) as a std
+    ins_test_std: dict[str, float]  # the INS's own noise: its fault tests and NIS use this
+    front_wheel_std: float      # the front axle's rim speed as a measure of its speed [m/s]
+    wheel_std: float            # wheel speed noise incl. quantisation [rad/s]
+    wheel_jerk: float           # wheel filters' process noise [rad/s^2 / sqrt(s)]
+    steering_std: float         # [rad]
+    steering_jerk: float        # [rad/s / sqrt(s)]
+    torque_std: float           # [Nm]
+    torque_jerk: float          # [Nm/s / sqrt(s)]
+    gate: float                 # NIS beyond this: sample rejected (chi^2, 1 dof) [-]
+    jump_gate: float            # NIS beyond this: named a jump [-]
+    persist: int                # rejections in a row that mean a step, not an outlier [-]
+    bias_window: int            # innovations in the bias test's window [-]
+    bias_threshold: float       # |mean normalised innovation| sqrt(window) beyond: biased [-]
+    frozen_samples: int         # identical values in a row that mean a frozen signal [-]
+    stuck_min_speed: float      # a wheel reading ~0 while its filter says more: stuck [rad/s]
+    stuck_samples: int          # such readings in a row [-]
+    max_coast: float            # without velocity aiding longer than this: V, beta invalid [s]
+    timeout: float              # a unit silent this long has dropped out [s]
+
+    def __post_init__(self):
+        for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
+                     'gyro_bias_std0', 'front_wheel_std', 'wheel_std', 'wheel_jerk',
+                     'steering_std', 'steering_jerk', 'torque_std', 'torque_jerk', 'gate',
+                     'max_coast', 'stuck_min_speed', 'timeout'):
+            require(getattr(self, name) > 0, f'estimator.{name}', 'must be positive')
+        require(self.accel_bias_walk >= 0 and self.gyro_bias_walk >= 0, 'estimator',
+                'bias walks must be >= 0')
+        require(self.jump_gate > self.gate, 'estimator.jump_gate', 'must exceed gate')
+        for name in ('persist', 'bias_window', 'frozen_samples', 'stuck_samples'):
+            require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
+        for key in ('ins_std', 'ins_test_std'):
+            given = getattr(self, key)
+            missing = sorted(set(FIELDS['ins']) - set(given))
+            unknown = sorted(set(given) - set(FIELDS['ins']))
+            require(not missing and not unknown, f'estimator.{key}',
+                    f'needs exactly {list(FIELDS["ins"])} (missing {missing}, unknown {unknown})')
+            for k, v in given.items():
+                require(v > 0, f'estimator.{key}.{k}', 'must be positive')
+
+
+def load_estimator_params(path, overrides=()) -> EstimatorParams:
+    """``config/estimator.yaml`` after ``key=value`` overrides; every error names the key."""
+    raw = load_yaml(path)
+    for item in overrides:
+        set_key(raw, *split_override(item), where='estimator')
+    return from_dict(EstimatorParams, raw, 'estimator')
+
+
+class _Monitor:
+    """Fault tests of one scalar channel, and its NIS record."""
+
+    def __init__(self, name: str, p: EstimatorParams):
+        self.name, self.p = name, p
+        self.last, self.same, self.rejected = None, 0, 0
+        self.window = deque(maxlen=p.bias_window)
+        self.excluded: str | None = None    # the reason it is left out, or None
+        self.nis: list[float] = []
+
+    def frozen(self, value: float) -> bool:
+        """Feed the raw value; True while it has repeated ``frozen_samples`` times."""
+        self.same = self.same + 1 if value == self.last else 1
+        self.last = value
+        return self.same >= self.p.frozen_samples
+
+    def judge(self, nis: float, normalised: float) -> str:
+        """'accept', 'reject', 'jump', 'step' or 'bias' for one innovation."""
+        self.nis.append(nis)
+        self.window.append(normalised)   # a rejected sample is evidence of a bias too
+        if nis > self.p.gate:
+            self.rejected += 1
+            if self.rejected >= self.p.persist:
+                self.rejected = 0
+                self.window.clear()
+                return 'step'
+            return 'jump' if nis > self.p.jump_gate and self.rejected == 1 else 'reject'
+        self.rejected = 0
+        if (len(self.window) == self.window.maxlen
+                and abs(sum(self.window)) / math.sqrt(len(self.window)) > self.p.bias_threshold):
+            self.window.clear()
+            return 'bias'
+        return 'accept'
+
+
+class _RateFilter:
+    """Constant-rate Kalman filter of one scalar signal: state (value, rate), plain floats
+    (numpy costs more than the arithmetic at 2 x 2)."""
+
+    def __init__(self, std: float, jerk: float):
+        self.R, self.q = std * std, jerk * jerk
+        self.x = None
+        self.t = 0.0
+
+    def _predicted(self, t):
+        """(value, rate) and the covariance (p00, p01, p11) at ``t``."""
+        h = max(0.0, t - self.t)
+        x0, x1 = self.x
+        p00, p01, p11 = self.P
+        q = self.q
+        return ((x0 + h * x1, x1),
+                (p00 + 2.0 * h * p01 + h * h * p11 + q * h ** 3 / 3.0,
+                 p01 + h * p11 + q * h * h / 2.0, p11 + q * h))
+
+    def innovation(self, t: float, z: float) -> tuple[float, float]:
+        """Innovation and its variance of a sample ``z`` stamped ``t``."""
+        x, P = self._predicted(t)
+        return z - x[0], P[0] + self.R
+
+    def update(self, t: float, z: float) -> None:
+        if self.x is None:
+            self.reset(t, z)
+            return
+        (x0, x1), (p00, p01, p11) = self._predicted(t)
+        S = p00 + self.R
+        k0, k1 = p00 / S, p01 / S
+        nu = z - x0
+        self.x = (x0 + k0 * nu, x1 + k1 * nu)
+        self.P = (p00 - k0 * p00, p01 - k0 * p01, p11 - k1 * p01)
+        self.t = t
+
+    def reset(self, t: float, z: float) -> None:
+        self.x, self.t = (z, 0.0), t
+        self.P = (self.R, 0.0, 1e4 * self.R)
+
+    def at(self, t: float) -> float:
+        """The value extrapolated to ``t`` [signal unit]."""
+        return float(self.x[0] + self.x[1] * max(0.0, t - self.t))
+
+
+class Estimator:
+    """EKF of the body velocity, pose and IMU biases, plus one filter per wheel and actuator.
+
+    Parameters
+    ----------
+    vehicle : VehicleParams
+        Front rolling radius ``R_F`` and CoG to front axle ``a`` (the front wheels' speed).
+    params : EstimatorParams
+    """
+
+    def __init__(self, vehicle: VehicleParams, params: EstimatorParams):
+        self.vehicle, self.p = vehicle, params
+        self.reset()
+
+    def reset(self) -> None:
+        p = self.p
+        self.x: np.ndarray | None = None
+        self.P = np.diag([0.1, 0.1, 1e-4, 0.1, 0.1, p.accel_bias_std0 ** 2,
+                          p.accel_bias_std0 ** 2, p.gyro_bias_std0 ** 2])
+        self.t = -math.inf                 # the EKF's time (the fusion horizon) [s]
+        self._imu: deque = deque(maxlen=64)   # (stamp, ax, ay, r), newest last
+        self._u = None                     # IMU input held since the EKF's time
+        self._pending: list[SensorSample] = []
+        self._steer: deque = deque(maxlen=16)  # (stamp, delta) for the wheel model
+        self.wheels = [_RateFilter(p.wheel_std, p.wheel_jerk) for _ in FIELDS['wheels']]
+        self.steering = _RateFilter(p.steering_std, p.steering_jerk)
+        self.torque = _RateFilter(p.torque_std, p.torque_jerk)
+        self.yaw_rate = _RateFilter(p.gyro_std, p.yaw_jerk)
+        self._steering_torque = 0.0
+        self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p) for u in FIELDS for f in FIELDS[u]}
+        self.monitors['wheels.front_speed'] = _Monitor('wheels.front_speed', p)
+        self._stuck = [0] * 4
+        self.events: list[FaultEvent] = []
+        self._now = 0.0
+        self._last_aided = -math.inf
+        self._arrived: dict[str, float] = {}   # unit -> when its last sample arrived [s]
+        self._silent: set[str] = set()
+        self.step_times: list[float] = []
+
+    # --- the step ----------------------------------------------------------------------------
+
+    def step(self, samples, now: float) -> VehicleState | None:
+        """Take the samples that arrived since the last call; return the state at ``now``.
+
+        None until the first INS and IMU samples have arrived.
+        """
+        t0 = time.perf_counter()
+        self._now = now
+        for s in sorted(samples, key=lambda s: s.unit != 'imu'):   # the IMU first: it drives
+            self._arrived[s.unit] = now
+            if s.unit == 'imu':
+                self._imu.append((s.stamp, *s.values))
+                if self.x is not None:   # bias-corrected with the newest gyro bias
+                    self._scalar(self.yaw_rate, 'imu.r', s.stamp, s.values[2] - self.x[E.B_R])
+            elif s.unit == 'wheels':
+                self._wheel_sample(s)
+                self._pending.append(s)
+            elif s.unit == 'steering':
+                self._steer.append((s.stamp, s.values[0]))
+                self._scalar(self.steering, 'steering.delta', s.stamp, s.values[0])
+                self._steering_torque = s.values[1]
+            elif s.unit == 'torque':
+                self._scalar(self.torque, 'torque.drive_torque', s.stamp, s.values[0])
+            elif s.unit == 'ins':
+                self._pending.append(s)
+                if self.x is None and self._imu:
+                    self._initialise(s)
+        self._check_silence(now)
+        if self.x is None:
+            return None
+        horizon = now - self.p.horizon_delay
+        self._pending.sort(key=lambda s: s.stamp)
+        while self._pending and self._pending[0].stamp <= horizon + 1e-9:
+            s = self._pending.pop(0)
+            if s.stamp < self.t - 1e-9:
+                continue   # older than the horizon already fused: too late to use
+            self._predict_to(s.stamp)
+            (self._ins_update if s.unit == 'ins' else self._front_wheel_update)(s)
+        self._predict_to(horizon)
+        state = self._output(now)
+        self.step_times.append(time.perf_counter() - t0)
+        return state
+
+    # --- EKF -----------------------------------------------------------------------------------
+
+    def _initialise(self, s: SensorSample) -> None:
+        V, beta, _, X, Y, yaw = s.values
+        self.x = np.array([V * math.cos(beta), V * math.sin(beta), yaw, X, Y, 0.0, 0.0, 0.0])
+        self.t = self._last_aided = s.stamp
+        self._u = self._imu_at(s.stamp)
+
+    def _imu_at(self, t: float):
+        """The newest IMU sample stamped at or before ``t`` (the oldest one if none)."""
+        best = self._imu[0]
+        for sample in self._imu:
+            if sample[0] <= t + 1e-9:
+                best = sample
+        return best
+
+    def _f(self, x, u, h):
+        """Kinematic model over ``h`` seconds: the IMU's accelerations and yaw rate drive it."""
+        _, ax, ay, r_m = u
+        r = r_m - x[E.B_R]
+        c, s = math.cos(x[E.PSI]), math.sin(x[E.PSI])
+        out = x.copy()
+        out[E.VX] += h * (ax - x[E.B_AX] + r * x[E.VY])
+        out[E.VY] += h * (ay - x[E.B_AY] - r * x[E.VX])
+        out[E.PSI] += h * r
+        out[E.X] += h * (x[E.VX] * c - x[E.VY] * s)
+        out[E.Y] += h * (x[E.VX] * s + x[E.VY] * c)
+        return out
+
+    def _propagate(self, h: float) -> None:
+        if h <= 0.0:
+            return
+        p, x, u = self.p, self.x, self._u
+        r = u[3] - x[E.B_R]
+        c, s = math.cos(x[E.PSI]), math.sin(x[E.PSI])
+        F = np.eye(NE)
+        F[E.VX, E.VY], F[E.VX, E.B_AX], F[E.VX, E.B_R] = h * r, -h, -h * x[E.VY]
+        F[E.VY, E.VX], F[E.VY, E.B_AY], F[E.VY, E.B_R] = -h * r, -h, h * x[E.VX]
+        F[E.PSI, E.B_R] = -h
+        F[E.X, E.VX], F[E.X, E.VY], F[E.X, E.PSI] = h * c, -h * s, -h * (x[E.VX] * s + x[E.VY] * c)
+        F[E.Y, E.VX], F[E.Y, E.VY], F[E.Y, E.PSI] = h * s, h * c, h * (x[E.VX] * c - x[E.VY] * s)
+        # IMU noise enters through the same columns as the biases it adds to
+        G = F[:, [E.B_AX, E.B_AY, E.B_R]]
+        q = np.diag([p.accel_std ** 2, p.accel_std ** 2, p.gyro_std ** 2])
+        Q = G @ q @ G.T
+        Q[E.B_AX, E.B_AX] += p.accel_bias_walk ** 2 * h
+        Q[E.B_AY, E.B_AY] += p.accel_bias_walk ** 2 * h
+        Q[E.B_R, E.B_R] += p.gyro_bias_walk ** 2 * h
+        self.x = self._f(x, u, h)
+        self.P = F @ self.P @ F.T + Q
+
+    def _predict_to(self, t: float) -> None:
+        """Advance the EKF to ``t`` on the IMU samples in between (each held until the next)."""
+        for sample in list(self._imu):
+            if self.t + 1e-9 < sample[0] <= t + 1e-9:
+                self._propagate(sample[0] - self.t)
+                self.t, self._u = sample[0], sample
+        self._propagate(t - self.t)
+        self.t = max(self.t, t)
+
+    def _scalar_update(self, name: str, z: float, h: float, H: np.ndarray, R: float,
+                       wrap: bool = False, R_test: float | None = None) -> str:
+        """One scalar EKF update weighted by ``R``, its fault test and NIS on ``R_test`` (the
+        sensor's own noise; default ``R``); returns the monitor's verdict."""
+        mon = self.monitors[name]
+        nu = z - h
+        if wrap:
+            nu = math.remainder(nu, 2.0 * math.pi)
+        PH = self.P @ H
+        HPH = float(H @ PH)
+        S, S_test = HPH + R, HPH + (R if R_test is None else R_test)
+        verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test))
+        if verdict in ('reject', 'jump'):
+            if verdict == 'jump':
+                self._event(name, 'jump')
+            return verdict
+        pose = name in ('ins.x', 'ins.y', 'ins.yaw')
+        if verdict == 'step' or (verdict == 'bias' and not pose):   # a GNSS error is slow: no bias test
+            self._blame(name, verdict)
+            PH = self.P @ H
+            S = float(H @ PH) + R
+        K = PH / S
+        self.x = self.x + K * nu
+        self.P = self.P - np.outer(K, PH)
+        self.P = 0.5 * (self.P + self.P.T)
+        return verdict
+
+    def _blame(self, name: str, verdict: str) -> None:
+        """A persistent or biased innovation: the IMU bias behind it changed (a step), or, for
+        the pose, the GNSS solution jumped; that part's uncertainty is reset."""
+        p = self.p
+        if name == 'ins.r':
+            idx, channel, var = [E.B_R], 'imu.r', p.gyro_bias_std0 ** 2
+        elif name in ('ins.V', 'ins.beta', 'wheels.front_speed'):
+            idx, channel, var = [E.B_AX, E.B_AY], 'imu.ax/ay', p.accel_bias_std0 ** 2
+        else:
+            idx, channel, var = [E[name.split('.')[1].upper().replace('YAW', 'PSI')]], name, 1.0
+        if name == 'ins.r':
+            self.yaw_rate.x = None   # it filtered the old bias's correction: starts again
+        for i in idx:
+            self.P[i, :] = 0.0
+            self.P[:, i] = 0.0
+            self.P[i, i] = var
+        reason = 'bias step' if channel.startswith('imu') else f'{verdict} accepted'
+        if not any(e.channel == channel and e.reason == reason and self._now - e.t < 1.0
+                   for e in self.events[-8:]):   # one fault, one name: not once per window
+            self._event(channel, reason)
+
+    def _ins_update(self, s: SensorSample) -> None:
+        std = self.p.ins_std
+        aided = False
+        for name, z in zip(FIELDS['ins'], s.values):
+            if self._frozen_check(f'ins.{name}', z):
+                continue
+            H = np.zeros(NE)
+            x = self.x
+            vx, vy = x[E.VX], x[E.VY]
+            V2 = max(vx * vx + vy * vy, 1e-2)
+            if name == 'V':
+                V = math.sqrt(V2)
+                H[E.VX], H[E.VY] = vx / V, vy / V
+                h, wrap = V, False
+            elif name == 'beta':
+                H[E.VX], H[E.VY] = -vy / V2, vx / V2
+                h, wrap = math.atan2(vy, vx), True
+            elif name == 'r':
+                u = self._imu_at(s.stamp)
+                H[E.B_R] = -1.0
+                h, wrap = u[3] - x[E.B_R], False
+            else:
+                i = {'x': E.X, 'y': E.Y, 'yaw': E.PSI}[name]
+                H[i] = 1.0
+                h, wrap = x[i], name == 'yaw'
+            gyro = self.p.gyro_std ** 2 if name == 'r' else 0.0   # the IMU's r is in h
+            verdict = self._scalar_update(f'ins.{name}', z, h, H, std[name] ** 2 + gyro, wrap,
+                                          self.p.ins_test_std[name] ** 2 + gyro)
+            aided |= name in ('V', 'beta') and verdict not in ('reject', 'jump')
+        if aided:
+            self._last_aided = s.stamp
+
+    def _front_wheel_update(self, s: SensorSample) -> None:
+        """The front wheels' mean rim speed: the front axle's speed along the wheel (rolling)."""
+        healthy = [i for i in (0, 1) if self.monitors[f'wheels.{FIELDS["wheels"][i]}'].excluded
+                   is None]
+        if len(healthy) < 2:
+            return   # one front wheel alone misses the yaw term of the track: not used
+        omega = 0.5 * (s.values[0] + s.values[1])
+        delta = self._steer_at(s.stamp)
+        u = self._imu_at(s.stamp)
+        x, a = self.x, self.vehicle.a
+        r = u[3] - x[E.B_R]
+        c, sn = math.cos(delta), math.sin(delta)
+        h = x[E.VX] * c + (x[E.VY] + a * r) * sn
+        H = np.zeros(NE)
+        H[E.VX], H[E.VY], H[E.B_R] = c, sn, -a * sn
+        self._scalar_update('wheels.front_speed', omega * self.vehicle.R_F, h, H,
+                            self.p.front_wheel_std ** 2)
+
+    def _steer_at(self, t: float) -> float:
+        best = self._steer[0][1] if self._steer else 0.0
+        for stamp, delta in self._steer:
+            if stamp <= t + 1e-9:
+                best = delta
+        return best
+
+    # --- wheels, steering, torque -----------------------------------------------------------
+
+    def _wheel_sample(self, s: SensorSample) -> None:
+        p = self.p
+        for i, (name, z) in enumerate(zip(FIELDS['wheels'], s.values)):
+            key = f'wheels.{name}'
+            mon, filt = self.monitors[key], self.wheels[i]
+            if filt.x is not None and abs(z) < 0.5 * p.stuck_min_speed \
+                    and abs(filt.at(s.stamp)) > p.stuck_min_speed:
+                self._stuck[i] += 1
+                if self._stuck[i] >= p.stuck_samples and mon.excluded is None:
+                    mon.excluded = 'stuck at zero'
+                    self._event(key, 'stuck at zero')
+                continue   # a reading of zero under a moving car never reaches the filter
+            self._stuck[i] = 0
+            if mon.excluded == 'stuck at zero':
+                mon.excluded = None
+                filt.reset(s.stamp, z)
+                continue
+            self._scalar(filt, key, s.stamp, z)
+
+    def _scalar(self, filt: _RateFilter, name: str, stamp: float, z: float) -> None:
+        """Test one sample against its channel's filter, then update (or re-initialise)."""
+        if filt.x is None:
+            filt.update(stamp, z)
+            return
+        nu, S = filt.innovation(stamp, z)
+        verdict = self.monitors[name].judge(nu * nu / S, nu / math.sqrt(S))
+        if verdict == 'jump':
+            self._event(name, 'jump')
+        if verdict == 'step':
+            self._event(name, 'step accepted')
+            filt.reset(stamp, z)
+        elif verdict not in ('reject', 'jump'):
+            filt.update(stamp, z)
+
+    def _frozen_check(self, name: str, z: float) -> bool:
+        """True while ``name`` is frozen (left out); names the fault once, clears on change."""
+        mon = self.monitors[name]
+        frozen = mon.frozen(z)
+        if frozen and mon.excluded is None:
+            mon.excluded = 'frozen'
+            self._event(name, 'frozen')
+        elif not frozen and mon.excluded == 'frozen':
+            mon.excluded = None
+        return frozen
+
+    def _check_silence(self, now: float) -> None:
+        """Name a unit that stopped sending (a GNSS/INS dropout), and its return."""
+        for unit, last in self._arrived.items():
+            silent = now - last > self.p.timeout
+            if silent and unit not in self._silent:
+                self._silent.add(unit)
+                self._event(unit, 'dropout')
+            elif not silent and unit in self._silent:
+                self._silent.discard(unit)
+                self._event(unit, 'back')
+
+    def _event(self, channel: str, reason: str) -> None:
+        self.events.append(FaultEvent(self._now, channel, reason))
+
+    # --- output -------------------------------------------------------------------------------
+
+    def _output(self, now: float) -> VehicleState:
+        """The EKF carried from its horizon to ``now`` on the newer IMU samples (no covariance)."""
+        x, u, t = self.x.copy(), self._u, self.t
+        for sample in self._imu:
+            if t + 1e-9 < sample[0] <= now + 1e-9:
+                x = self._f(x, u, sample[0] - t)
+                t, u = sample[0], sample
+        x = self._f(x, u, max(0.0, now - t))
+        vx, vy = x[E.VX], x[E.VY]
+        ax, ay = u[1] - x[E.B_AX], u[2] - x[E.B_AY]
+        wheels = [f.at(now) if f.x is not None else 0.0 for f in self.wheels]
+        for i, j in ((0, 1), (1, 0), (2, 3), (3, 2)):   # a faulty wheel: its axle partner's
+            if self.monitors[f'wheels.{FIELDS["wheels"][i]}'].excluded is not None:
+                wheels[i] = wheels[j]
+        validity = Validity.ALL
+        if now - self._last_aided > self.p.max_coast:
+            validity &= ~(Validity.V | Validity.BETA | Validity.VX_VY)
+        return VehicleState(
+            stamp=now, V=math.hypot(vx, vy), beta=math.atan2(vy, vx),
+            r=self.yaw_rate.at(now) if self.yaw_rate.x is not None else u[3] - x[E.B_R],
+            vx=vx, vy=vy, ax=ax, ay=ay, wheel_speeds=tuple(wheels),
+            delta=self.steering.at(now) if self.steering.x is not None else 0.0,
+            steering_torque=self._steering_torque,
+            drive_torque=self.torque.at(now) if self.torque.x is not None else 0.0,
+            x=x[E.X], y=x[E.Y], yaw=math.remainder(x[E.PSI], 2.0 * math.pi),
+            validity=int(validity))
+
+    # --- consistency ---------------------------------------------------------------------------
+
+    def nis_summary(self) -> dict[str, dict]:
+        """Per channel: samples, mean NIS and the share within the 95 % chi^2(1) bound."""
+        out = {}
+        for name, mon in self.monitors.items():
+            if mon.nis:
+                nis = np.asarray(mon.nis)
+                out[name] = {'n': int(nis.size), 'mean': float(nis.mean()),
+                             'within_95': float(np.mean(nis <= CHI2_1_95))}
+        return out
+
+
+CHI2_1_95 = 3.841   # 95 % quantile of chi^2 with one degree of freedom
+
+
+class LatestSamples:
+    """No estimator: the newest sample of each unit as the state (what (b) of the issue's
+    comparison feeds the controller), stamped at arrival."""
+
+    def __init__(self):
+        self.latest: dict[str, SensorSample] = {}
+
+    def step(self, samples, now: float) -> VehicleState | None:
+        for s in samples:
+            self.latest[s.unit] = s
+        if not {'ins', 'imu', 'wheels', 'steering', 'torque'} <= self.latest.keys():
+            return None
+        V, beta, r, X, Y, yaw = self.latest['ins'].values
+        ax, ay, _ = self.latest['imu'].values
+        delta, steering_torque = self.latest['steering'].values
+        return VehicleState(
+            stamp=now, V=V, beta=beta, r=r, vx=V * math.cos(beta), vy=V * math.sin(beta),
+            ax=ax, ay=ay, wheel_speeds=tuple(self.latest['wheels'].values), delta=delta,
+            steering_torque=steering_torque, drive_torque=self.latest['torque'].values[0],
+            x=X, y=Y, yaw=yaw)
+
+
+__all__ = ['CHI2_1_95', 'E', 'Estimator', 'EstimatorParams', 'FIELDS', 'FaultEvent',
+           'LatestSamples', 'SensorSample', 'load_estimator_params']

@@ -1,0 +1,130 @@
+"""drift_control.estimator on synthetic drives through drift_sim.sensors: convergence, latency
+compensation, IMU bias estimation, named sensor faults within 100 ms, and its parameters."""
+import math
+
+import numpy as np
+import pytest
+
+from drift_control.estimator import E, Estimator, LatestSamples, load_estimator_params
+from drift_control.params import ParamError, config_dir, load_vehicle
+from drift_control.signals import Validity, VehicleState
+from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
+
+DT = 0.01
+VEHICLE = load_vehicle('m3_competition')
+PARAMS = load_estimator_params(config_dir() / 'estimator.yaml')
+SENSORS = load_sensor_params('realistic')
+
+
+def circle(t, V=9.0, beta=-0.5, r=0.6, r_wave=0.0):
+    """A left drift on a circle (yaw rate ``r + r_wave sin(2t)``), kinematically consistent."""
+    r_t = r + r_wave * math.sin(2.0 * t)
+    yaw = r * t + r_wave * (1.0 - math.cos(2.0 * t)) / 2.0
+    vx, vy = V * math.cos(beta), V * math.sin(beta)
+    R = V / r
+    delta = -0.1
+    w_F = (vx * math.cos(delta) + (vy + VEHICLE.a * r_t) * math.sin(delta)) / VEHICLE.R_F
+    return VehicleState(stamp=round(t, 9), V=V, beta=beta, r=r_t, vx=vx, vy=vy, ax=-r_t * vy,
+                        ay=r_t * vx, wheel_speeds=(w_F, w_F, 40.0, 40.0), delta=delta,
+                        drive_torque=2000.0, x=R * math.sin(yaw + beta),
+                        y=-R * math.cos(yaw + beta), yaw=math.remainder(yaw, 2.0 * math.pi))
+
+
+def drive(seconds, faults=(), seed=0, truth=circle, estimator=None):
+    """Run sensors and estimator over a synthetic drive; (estimator, sensors, truths, states)."""
+    sensors = Sensors(SENSORS, DT, seed, [parse_fault(f) for f in faults])
+    est = estimator or Estimator(VEHICLE, PARAMS)
+    truths, states = [truth(0.0)], [est.step(sensors.reset(truth(0.0)), 0.0)]
+    for k in range(1, int(round(seconds / DT)) + 1):
+        t = round(k * DT, 9)
+        truths.append(truth(t))
+        states.append(est.step(sensors.step(truths[-1]), t))
+    return est, sensors, truths, states
+
+
+def first_event(est, channel, reason):
+    return next((e.t for e in est.events if e.channel == channel and e.reason == reason), None)
+
+
+def test_steady_drift_estimate_converges_and_learns_the_gyro_bias():
+    est, sensors, truths, states = drive(15.0)
+    tail = slice(500, None)
+    beta_err = [s.beta - tr.beta for s, tr in zip(states[tail], truths[tail])]
+    r_err = [s.r - tr.r for s, tr in zip(states[tail], truths[tail])]
+    assert math.degrees(np.sqrt(np.mean(np.square(beta_err)))) < 0.25
+    assert np.sqrt(np.mean(np.square(r_err))) < 0.003   # the gyro's 0.0017 noise, no offset
+    gyro_bias = sensors.units[1].bias[2]        # the IMU's drawn yaw-rate offset
+    assert abs(gyro_bias) > 0.001, 'seed 0 draws a bias worth estimating'
+    assert est.x[E.B_R] == pytest.approx(gyro_bias, abs=0.0007)
+    assert all(s.validity == int(Validity.ALL) for s in states)
+    assert not [e for e in est.events if e.reason in ('frozen', 'bias step', 'stuck at zero')]
+
+
+def test_latency_is_compensated_to_the_control_instant():
+    """A swinging yaw rate: the estimate at ``now`` beats the newest (20 ms old) INS sample."""
+    truth = lambda t: circle(t, r_wave=0.3)   # noqa: E731
+    sensors = Sensors(SENSORS, DT, 1)
+    est, raw = Estimator(VEHICLE, PARAMS), LatestSamples()
+    samples = sensors.reset(truth(0.0))
+    est.step(samples, 0.0), raw.step(samples, 0.0)
+    err_est, err_raw = [], []
+    for k in range(1, 1500):
+        t = round(k * DT, 9)
+        samples = sensors.step(truth(t))
+        s_est, s_raw = est.step(samples, t), raw.step(samples, t)
+        if k > 300:
+            err_est.append(s_est.r - truth(t).r)
+            err_raw.append(s_raw.r - truth(t).r)
+    rms = lambda e: float(np.sqrt(np.mean(np.square(e))))   # noqa: E731
+    assert rms(err_est) < 0.5 * rms(err_raw), (rms(err_est), rms(err_raw))
+
+
+@pytest.mark.parametrize('fault, channel, reason', [
+    ('ins.beta:freeze:5:20', 'ins.beta', 'frozen'),
+    ('imu.r:bias_step:5:20:0.0175', 'imu.r', 'bias step'),       # 1 deg/s
+    ('wheels.FL:stuck:5:20:0', 'wheels.FL', 'stuck at zero'),
+    ('ins:dropout:5:6', 'ins', 'dropout'),
+])
+def test_a_sensor_fault_is_named_within_100_ms(fault, channel, reason):
+    est, _, truths, states = drive(7.0, [fault])
+    seen = first_event(est, channel, reason)
+    assert seen is not None, f'{fault}: not detected; events {est.events}'
+    assert 5.0 <= seen <= 5.1 + 1e-9, f'{fault}: detected at {seen} s'
+    # the state stays usable: the fault is left out or absorbed, the rest carries on
+    during = slice(520, 700)   # from 20 ms after the fault: time to see it
+    beta_err = max(abs(s.beta - tr.beta) for s, tr in zip(states[during], truths[during]))
+    r_err = max(abs(s.r - tr.r) for s, tr in zip(states[during], truths[during]))
+    assert math.degrees(beta_err) < 1.0 and r_err < 0.01
+    assert all(s.wheel_speeds[0] > 20.0 for s in states[during])
+
+
+def test_an_accelerometer_bias_step_is_learnt_while_the_sideslip_holds():
+    """1 m/s^2 on ay: absorbed by the bias state (not named: the INS sideslip is weighted
+    low, its innovations stay within their gate), the sideslip error stays small."""
+    est, sensors, truths, states = drive(9.0, ['imu.ay:bias_step:5:20:1.0'])
+    beta_err = [abs(s.beta - tr.beta) for s, tr in zip(states[500:], truths[500:])]
+    assert math.degrees(max(beta_err)) < 0.5
+    roll = 9.81 * math.sin(SENSORS.imu.roll_gradient * truths[-1].ay)   # gravity through roll
+    assert est.x[E.B_AY] == pytest.approx(1.0 + sensors.units[1].bias[1] + roll, abs=0.1)
+
+
+def test_fault_free_drive_names_no_fault_over_half_a_minute():
+    est, *_ = drive(30.0, seed=3)
+    assert not [e for e in est.events if e.reason in ('frozen', 'bias step', 'stuck at zero',
+                                                      'dropout')], est.events
+
+
+def test_a_long_ins_dropout_marks_speed_and_sideslip_invalid():
+    est, _, _, states = drive(9.0, ['ins:dropout:5:9'])
+    assert states[600].has(Validity.BETA)                    # 1 s: coasting on the IMU
+    assert not states[800].has(Validity.BETA)                # 3 s: beyond max_coast
+    assert not states[800].has(Validity.V)
+
+
+def test_bad_estimator_parameters_name_the_key(tmp_path):
+    with pytest.raises(ParamError, match='estimator.gate'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['gate=-1'])
+    with pytest.raises(ParamError, match=r"estimator: unknown key\(s\) \['gaet'\]"):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['gaet=1'])
+    with pytest.raises(ParamError, match='estimator.ins_std'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['ins_std.vz=0.1'])
