@@ -216,18 +216,22 @@ class Sensors:
     def __init__(self, params: SensorParams, dt: float, seed: int = 0, faults=()):
         self.p, self.dt, self.seed = params, dt, int(seed)
         self.faults = tuple(faults)
-        self.units: list[_Unit] = []
+        self.units = self._build()   # checks rates and latencies against dt now, not at reset
 
     def reset(self, truth_state: VehicleState) -> list[SensorSample]:
         """Start a run at ``truth_state``; returns one sample of each unit, all of that instant."""
-        self.units = [_Unit(name, getattr(self.p, name), self.dt,
-                            np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E25, i])))
-                      for i, name in enumerate(FIELDS)]
+        self.units = self._build()
         depth = max(u.lag for u in self.units) + 1
         self._hist = deque([truth_state] * depth, maxlen=depth)
         self.k = 0
         return [SensorSample(u.name, truth_state.stamp, u.sample(truth_state, ()))
                 for u in self.units]
+
+    def _build(self) -> list[_Unit]:
+        """Every unit with fresh noise: one random stream per unit, from the seed."""
+        return [_Unit(name, getattr(self.p, name), self.dt,
+                      np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E25, i])))
+                for i, name in enumerate(FIELDS)]
 
     def step(self, truth_state: VehicleState) -> list[SensorSample]:
         """The samples arriving at ``truth_state.stamp``, after one plant step."""
