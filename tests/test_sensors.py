@@ -117,3 +117,15 @@ def test_a_rate_that_does_not_divide_the_plant_rate_is_refused():
 def test_a_bad_fault_is_named(text, message):
     with pytest.raises(ParamError, match=message):
         parse_fault(text)
+
+
+def test_closed_loop_through_sensors_and_estimator_reports_the_estimator():
+    pytest.importorskip('drift_control.nmpc')
+    from drift_sim.closed_loop import run_closed_loop
+    out, data = run_closed_loop('steady_dry', ['duration=3.0'], sensors='realistic',
+                                estimator='ekf')
+    assert not out['spun'] and out['commands_lost'] == 0
+    summary = out['estimator_summary']
+    assert summary['nis']['ins.beta']['n'] > 250 and 0 < summary['step_ms_p50'] < 5.0
+    seen_err = np.degrees(np.abs(data['beta_seen'] - data['beta']))[100:]
+    assert seen_err.max() < 1.0           # what the controller saw, against the truth
