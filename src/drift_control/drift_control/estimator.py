@@ -364,8 +364,8 @@ class Estimator:
             if verdict == 'jump':
                 self._event(name, 'jump')
             return verdict
-        pose = name in ('ins.x', 'ins.y', 'ins.yaw')
-        if verdict == 'step' or (verdict == 'bias' and not pose):   # a GNSS error is slow: no bias test
+        pose = name in ('ins.x', 'ins.y', 'ins.yaw')   # a GNSS error is slow: no bias test
+        if verdict == 'step' or (verdict == 'bias' and not pose):
             self._blame(name, verdict)
             PH = self.P @ H
             S = float(H @ PH) + R
