@@ -97,7 +97,8 @@ def sideslip_limit(eqmap, bounds):
     (``equilibrium_problem``); between two map radii the smaller of theirs (conservative), 0
     where only grip driving is left. The selector keeps its sideslip reference below this, so
     a lateral correction towards a tighter radius asks for less sideslip instead of steering
-    past the lock (the NMPC refuses that reference and falls back).
+    past the lock (the NMPC refuses that reference and falls back). ``limit.floor`` is its
+    smallest value.
     """
     delta, T_R, V = (eqmap.filled(name) for name in ('delta', 'T_R', 'V'))
     tol = 1e-6
@@ -113,6 +114,7 @@ def sideslip_limit(eqmap, bounds):
         if j >= len(radius):
             return beta[-1]
         return beta[j] if radius[j] == R else min(beta[j - 1], beta[j])
+    limit.floor = min(beta)   # no radius limits a sideslip at or below this
     return limit
 
 

@@ -141,6 +141,9 @@ class ReferenceSelector:
         self._lookup, self.path, self.p = lookup, path, params
         self._lookup_many = lookup_many
         self._beta_limit = beta_limit
+        # at or below the limit's smallest value (its ``floor``, if it tells) nothing is limited
+        self._beta_free = (getattr(beta_limit, 'floor', -math.inf) if beta_limit is not None
+                           else math.inf)
         self.frenet = Frenet(path, params.window_back, params.window_forward, params.lost_distance)
         self._warn = _Throttled(params.warn_interval)
         self._last: Reference | None = None
@@ -292,14 +295,15 @@ class ReferenceSelector:
         # _limit and side_weight written out: 24 stages a cycle, the same operations
         dK, dbeta, dw = p.curvature_rate_max * h, p.beta_rate_max * h, p.side_rate_max * h
         band = p.side_band or 1.0 / p.radius_max
+        from_path, path_beta = p.side_from_path, p.side_from_path_beta
         for k, (K_path, beta_path) in enumerate(zip(K_paths.tolist(),
                                                     np.broadcast_to(betas, s_k.shape).tolist())):
             K_k = max(-k_max, min(k_max, K_path - correction))
             K = K + max(-dK, min(dK, K_k - K))
-            if self._beta_limit is not None:
+            if beta_path > self._beta_free:
                 beta_path = min(beta_path, self._beta_limit(self._radius(K)))
             beta = beta + max(-dbeta, min(dbeta, beta_path - beta))
-            on_path = self._path_side(beta, K_path)
+            on_path = from_path and (beta > path_beta or abs(K_path) >= band)   # _path_side
             if on_path and planned is not None:
                 side = planned[k]
             else:
