@@ -48,6 +48,20 @@ def test_a_held_drift_never_trips():
         delta += 0.7 * (command - delta)
 
 
+def test_a_dithering_command_that_the_wheels_follow_late_does_not_trip():
+    """The NMPC's steering dithers +-1 deg at ~4 Hz around a held angle; a slow actuator follows
+    it 40 ms late, so cycle by cycle the wheels move against the last demand half the time."""
+    sup = Supervisor(SupervisorParams())
+    held = math.radians(-21.5)
+    sent = [held] * 3
+    for k in range(2500):
+        t = k * 0.02
+        command = held + math.radians(1.0) * math.sin(2.0 * math.pi * 4.0 * t)
+        st = state(t, delta_deg=math.degrees(sent[-3]))
+        assert sup.check(st, ref(t), cmd(t, math.degrees(command)), t) is None
+        sent.append(command)
+
+
 def steer(sup, seconds, share, t0=0.0, rate=1.0, delta0_deg=0.0):
     """The controller asks for a rate-limited step toward -22 deg each cycle (re-planning from
     the measured angle, as the NMPC does); the wheels deliver ``share`` of each step."""

@@ -5,10 +5,12 @@ The paper's full-automation test on a production car failed this way: the electr
 direction of travel and the car spun. An MPC that keeps optimising on a steering angle it does
 not get presses on into the spin. The supervisor watches the outcome instead of the solver:
 
-- steering authority: over a leaky window of ``steer_window`` seconds, the road wheels moved
-  less than ``steer_ratio_min`` of the motion the controller asked for, while it asked for more
-  than ``steer_demand_min`` (the NMPC re-plans from the measured angle every cycle, so its command
-  is never far from the measurement: the shortfall shows in the motion, not in the angle);
+- steering authority: over a leaky window of ``steer_window`` seconds, the controller asked for
+  more than ``steer_demand_min`` of net steering motion in one direction and the road wheels
+  moved less than ``steer_ratio_min`` of it that way (the NMPC re-plans from the measured angle
+  every cycle, so its command is never far from the measurement: the shortfall shows in the
+  motion, not in the angle). Both sums are signed: a command dithering around a held angle asks
+  for no net motion, and a slow actuator's phase lag on that dither is not a loss of authority;
 - sideslip envelope: ``|beta|`` exceeds the reference's by more than ``beta_excess_max``, or
   ``beta_abs_max`` outright (a spin starts);
 
@@ -61,7 +63,7 @@ class Supervisor:
         self.p = params
         self.reason: str | None = None
         self._beta_since: float | None = None
-        self._asked = self._moved = 0.0      # leaky sums of steering motion [rad]
+        self._asked = self._moved = 0.0      # signed leaky sums of steering motion [rad]
         self._prev: tuple[float, float, float] | None = None   # (t, delta measured, commanded)
 
     @property
@@ -99,12 +101,14 @@ class Supervisor:
             asked = commanded0 - measured0                 # motion the last command asked for
             moved = state.delta - measured0
             keep = math.exp(-(now - t0) / p.steer_window)
-            self._asked = keep * self._asked + abs(asked)
-            self._moved = keep * self._moved + moved * math.copysign(1.0, asked)
-            if self._asked > p.steer_demand_min and self._moved < p.steer_ratio_min * self._asked:
+            self._asked = keep * self._asked + asked
+            self._moved = keep * self._moved + moved
+            demand = abs(self._asked)
+            delivered = self._moved * math.copysign(1.0, self._asked)
+            if demand > p.steer_demand_min and delivered < p.steer_ratio_min * demand:
                 return self._trip(f'steering authority lost: the wheels moved '
-                                  f'{math.degrees(self._moved):.1f} deg of '
-                                  f'{math.degrees(self._asked):.1f} deg asked')
+                                  f'{math.degrees(delivered):.1f} deg of '
+                                  f'{math.degrees(demand):.1f} deg asked')
         elif not steering:
             self._asked = self._moved = 0.0
         self._prev = (now, state.delta, last_command.delta) if steering else None
