@@ -21,9 +21,10 @@ from drift_control import cli_args
 from drift_control.assembly import load_setup
 from drift_control.params import ParamError, config_dir, split_override, vehicle_file
 from drift_tools.launcher import Launcher
+from drift_control.estimator import ESTIMATORS
 from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, SIM_MODULE,
-                               RunOptions,
-                               load_stack, node_command, node_env, write_params_file)
+                               RunOptions, load_stack, node_command, node_env, with_estimator,
+                               write_params_file)
 
 
 
@@ -88,7 +89,35 @@ def parse_args(argv=None):
     p.add_argument('--no-summary', action='store_true', help='do not summarise the bag at the end')
     p.add_argument('--allow-infeasible', action='store_true',
                    help='start even if the path asks for a drift the car cannot hold')
+    p.add_argument('--sensors', metavar='NAME', default='',
+                   help='the simulator publishes the car\'s sensor units '
+                        '(config/sim/sensors/NAME.yaml, e.g. realistic) and an estimator node '
+                        'between it and the controller publishes the state (default: the '
+                        'plant\'s measured state, no estimator)')
+    p.add_argument('--estimator', choices=ESTIMATORS, default='ekf',
+                   help='with --sensors: fuse them (ekf) or pass the newest samples (none)')
+    p.add_argument('--sensor-set', action='append', default=[], metavar='KEY=VALUE',
+                   help='override a sensor key (ins.channels.beta.std=0.003)')
+    p.add_argument('--sensor-fault', action='append', default=[], metavar='FAULT',
+                   help='unit[.channel]:kind:start:end[:value], e.g. ins:dropout:30:31')
+    p.add_argument('--estimator-set', action='append', default=[], metavar='KEY=VALUE',
+                   help='override a key of config/estimator.yaml')
     return p.parse_args(argv)
+
+
+def check_sensors(args, cfg_dir: Path) -> None:
+    """The sensor set, its faults and the estimator's parameters, before any node starts."""
+    if not args.sensors:
+        if args.sensor_set or args.sensor_fault or args.estimator_set:
+            raise ParamError('--sensor-set, --sensor-fault and --estimator-set need --sensors')
+        return
+    from drift_control.estimator import load_estimator_params
+    from drift_sim.sensors import load_sensor_params, parse_fault
+    load_sensor_params(args.sensors, cfg_dir, args.sensor_set)
+    for fault in args.sensor_fault:
+        parse_fault(fault)
+    if args.estimator == 'ekf':
+        load_estimator_params(cfg_dir / 'estimator.yaml', args.estimator_set)
 
 
 def _importable(module: str) -> bool:
@@ -106,6 +135,9 @@ def main(argv=None) -> int:
             vehicle_file(args.vehicle, cfg_dir)   # an unknown vehicle: one line, before any node
         stack = load_stack(args.stack or cfg_dir / 'stack.yaml')
         nodes = stack.graph(args.graph, [n for n in args.nodes.split(',') if n])
+        check_sensors(args, cfg_dir)
+        if args.sensors:   # the estimator stage between the simulator and the controller
+            nodes = with_estimator(nodes, stack.node_params)
         clock = args.clock or stack.defaults.get('clock', 'realtime')
         if clock == 'lockstep' and stack.clock_owner not in {n.name for n in nodes}:
             if args.clock == 'lockstep':   # nobody would publish /clock: no timer ever fires
@@ -139,6 +171,8 @@ def main(argv=None) -> int:
             run_info.write_text(json.dumps(collect(
                 cfg_dir, scenario=scenario, vehicle=args.vehicle or '', seed=args.seed,
                 overrides=args.set, graph=args.graph, clock=clock,
+                sensors=args.sensors, estimator=args.estimator if args.sensors else '',
+                sensor_faults=args.sensor_fault,
                 argv=[sys.executable, *sys.argv] if argv is None else ['run_stack.py', *argv])))
         opts = RunOptions(params_file=write_params_file(stack, params_dir / 'stack_params.yaml'),
                           config_dir=cfg_dir,
@@ -148,7 +182,11 @@ def main(argv=None) -> int:
                           bag_dir=args.bag, domain_id=args.domain_id,
                           sim_duration=args.sim_duration,
                           vehicle=args.vehicle or '',
-                          discovery_range=args.discovery_range)
+                          discovery_range=args.discovery_range,
+                          sensors=args.sensors, estimator=args.estimator,
+                          sensor_set=tuple(args.sensor_set),
+                          sensor_faults=tuple(args.sensor_fault),
+                          estimator_set=tuple(args.estimator_set))
         if args.sim_duration and not any(n.module == SIM_MODULE for n in nodes):
             raise ParamError(f'--sim-duration: graph {args.graph!r} has no simulator to end it')
         if opts.scenario:   # the controller's configuration and map, checked before any node
@@ -172,6 +210,9 @@ def main(argv=None) -> int:
         print(f'run_stack: node module(s) not found: {", ".join(missing)}', file=sys.stderr)
         return 2
 
+    if any(n.module == SIM_MODULE for n in nodes):
+        print('[launch] state: ' + (f'sensors {args.sensors} -> estimator {args.estimator}'
+                                    if args.sensors else 'the plant\'s measured state'))
     launcher = Launcher(kill_timeout=args.kill_timeout)
     launcher.install_signal_handlers()
     env = node_env(opts)

@@ -128,3 +128,26 @@ def test_bad_estimator_parameters_name_the_key(tmp_path):
         load_estimator_params(config_dir() / 'estimator.yaml', ['gaet=1'])
     with pytest.raises(ParamError, match='estimator.ins_std'):
         load_estimator_params(config_dir() / 'estimator.yaml', ['ins_std.vz=0.1'])
+
+
+def test_frame_stepper_answers_a_repeated_frame_and_restarts_on_a_clock_step_back():
+    from drift_control.estimator import FrameStepper
+    sensors = Sensors(SENSORS, DT, 0)
+    stepper = FrameStepper(Estimator(VEHICLE, PARAMS))
+    first = stepper.step(sensors.reset(circle(0.0)), 0.0)
+    assert first is not None and len(stepper.estimator.step_times) == 1
+    assert stepper.step([], 0.0) is first, 'a frame offered again: the same state, no step'
+    assert len(stepper.estimator.step_times) == 1
+    for k in range(1, 50):
+        state = stepper.step(sensors.step(circle(k * DT)), round(k * DT, 9))
+    assert state.stamp == pytest.approx(0.49)
+    again = stepper.step(Sensors(SENSORS, DT, 0).reset(circle(0.0)), 0.0)   # a new run
+    assert stepper.restarts == 1 and again.stamp == 0.0
+    assert again.beta == pytest.approx(first.beta, abs=1e-12), 'started over, not carried on'
+
+
+def test_build_estimator_refuses_an_unknown_kind():
+    from drift_control.estimator import build_estimator
+    assert isinstance(build_estimator('none', VEHICLE, None), LatestSamples)
+    with pytest.raises(ParamError, match='ukf'):
+        build_estimator('ukf', VEHICLE, config_dir() / 'estimator.yaml')

@@ -227,6 +227,28 @@ def test_node_command_and_clock_ownership(tmp_path, clock):
     assert yaml.safe_load(p_rec['bag_dir']) == str(tmp_path / 'bag') and 'bag_dir' not in p_sim
 
 
+def test_the_estimator_stage_follows_the_simulator_and_gets_the_sensors(tmp_path):
+    from drift_tools.stack import ESTIMATOR_MODULE, with_estimator
+    cfg = load_stack(REPO / 'config' / 'stack.yaml')
+    nodes = with_estimator(cfg.graph('sim'), cfg.node_params)
+    assert [n.name for n in nodes] == ['sim', 'estimator', 'reference', 'nmpc', 'recorder']
+    for graph in ('vehicle', 'sim_can'):   # no simulator on ROS topics: refused
+        with pytest.raises(ParamError, match='--sensors'):
+            with_estimator(cfg.graph(graph), cfg.node_params)
+    opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path, scenario='s',
+                      overrides=('surface.mu=0.9',), sensors='realistic', estimator='none',
+                      sensor_faults=('ins:dropout:1:2',))
+    p_sim = _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'), opts))
+    p_est = _params(node_command(NodeSpec('estimator', ESTIMATOR_MODULE), opts))
+    assert yaml.safe_load(p_sim['sensors']) == 'realistic'
+    assert yaml.safe_load(p_sim['sensor_faults']) == ['ins:dropout:1:2']
+    assert yaml.safe_load(p_est['estimator']) == 'none' and 'sensors' not in p_est
+    assert yaml.safe_load(p_est['set']) == ['surface.mu=0.9']
+    plain = _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'),
+                                 RunOptions(params_file=tmp_path, config_dir=tmp_path)))
+    assert 'sensors' not in plain, 'the default graph: the simulator as it was'
+
+
 def test_an_empty_scenario_is_not_passed(tmp_path):
     opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path)
     assert 'scenario' not in _params(node_command(NodeSpec('nmpc', 'm'), opts))

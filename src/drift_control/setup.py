@@ -36,6 +36,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
+            'estimator = drift_control.nodes.estimator_node:main',
             'nmpc = drift_control.nodes.nmpc_node:main',
             'reference = drift_control.nodes.reference_node:main',
         ],

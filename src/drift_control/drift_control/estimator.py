@@ -545,6 +545,13 @@ class Estimator:
 
     # --- consistency ---------------------------------------------------------------------------
 
+    def clear_records(self) -> None:
+        """Forget the NIS and step-time records: they grow with every sample (a node reports
+        and clears them once a second)."""
+        self.step_times.clear()
+        for mon in self.monitors.values():
+            mon.nis.clear()
+
     def nis_summary(self) -> dict[str, dict]:
         """Per channel: samples, mean NIS and the share within the 95 % chi^2(1) bound."""
         out = {}
@@ -564,6 +571,9 @@ class LatestSamples:
     comparison feeds the controller), stamped at arrival."""
 
     def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
         self.latest: dict[str, SensorSample] = {}
 
     def step(self, samples, now: float) -> VehicleState | None:
@@ -581,5 +591,43 @@ class LatestSamples:
             x=X, y=Y, yaw=yaw)
 
 
-__all__ = ['CHI2_1_95', 'E', 'Estimator', 'EstimatorParams', 'FIELDS', 'FaultEvent',
-           'LatestSamples', 'SensorSample', 'load_estimator_params']
+ESTIMATORS = ('ekf', 'none')
+
+
+def build_estimator(kind: str, vehicle: VehicleParams, params_file, overrides=()):
+    """``'ekf'``: the ``Estimator``; ``'none'``: ``LatestSamples`` (the newest sample of each
+    unit). ``params_file``: ``config/estimator.yaml``, read for the EKF only."""
+    require(kind in ESTIMATORS, 'estimator', f'{kind!r} is not one of {list(ESTIMATORS)}')
+    if kind == 'none':
+        return LatestSamples()
+    return Estimator(vehicle, load_estimator_params(params_file, overrides))
+
+
+class FrameStepper:
+    """An estimator fed frame by frame as they arrive over a network: one step per frame of
+    samples that arrived together. A frame offered again (the same arrival time: a simulator
+    waiting for its controller repeats its first one) gets the same state without a step; a
+    clock that steps back (a restarted simulator) starts the estimator over."""
+
+    def __init__(self, estimator):
+        self.estimator = estimator
+        self.last_now = -math.inf
+        self.state: VehicleState | None = None
+        self.restarts = 0
+
+    def step(self, samples, now: float) -> VehicleState | None:
+        """The state at ``now`` [s] after ``samples``; None until the estimator has one."""
+        if now == self.last_now:
+            return self.state
+        if now < self.last_now:
+            self.estimator.reset()
+            self.restarts += 1
+            self.state = None
+        self.last_now = now
+        self.state = self.estimator.step(samples, now) or self.state
+        return self.state
+
+
+__all__ = ['CHI2_1_95', 'E', 'ESTIMATORS', 'Estimator', 'EstimatorParams', 'FIELDS', 'FaultEvent',
+           'FrameStepper', 'LatestSamples', 'SensorSample', 'build_estimator',
+           'load_estimator_params']

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 # their publishers exist and misses none of the first messages; latched = transient-local.
 STACK_TOPICS = {
     'vehicle/state': ('drift_msgs/msg/VehicleState', False),
+    'vehicle/sensors': ('drift_msgs/msg/SensorSamples', False),   # with the estimator stage
     'drift/reference': ('drift_msgs/msg/DriftReference', False),
     'drift/command': ('drift_msgs/msg/DriftCommand', False),
     'drift/nmpc/status': ('drift_msgs/msg/NmpcStatus', False),

@@ -51,7 +51,8 @@ def git_version(repo) -> tuple[str, bool | None]:
 
 
 def collect(config_dir, *, scenario: str, vehicle: str, seed: int | None, overrides=(),
-            graph: str = '', clock: str = '', argv=()) -> dict[str, str]:
+            graph: str = '', clock: str = '', argv=(), sensors: str = '', estimator: str = '',
+            sensor_faults=()) -> dict[str, str]:
     """The ``drift_run`` record of a run about to start (all values strings)."""
     files = config_files(config_dir)
     blob = json.dumps(files, sort_keys=True).encode()
@@ -61,6 +62,8 @@ def collect(config_dir, *, scenario: str, vehicle: str, seed: int | None, overri
         'seed': '' if seed is None else str(seed),
         'overrides': json.dumps(list(overrides)),
         'graph': graph, 'clock': clock,
+        'sensors': sensors, 'estimator': estimator,   # '': the plant's measured state
+        'sensor_faults': json.dumps(list(sensor_faults)),
         'command_line': shlex.join(str(a) for a in argv),
         'commit': commit, 'dirty': '' if dirty is None else str(dirty).lower(),
         'config_dir': str(Path(config_dir).resolve()),

@@ -20,9 +20,10 @@ CLOCK_MODES = ('realtime', 'lockstep')
 DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
 RECORDER_MODULE = 'drift_tools.nodes.recorder_node'
 SIM_MODULE = 'drift_sim.nodes.sim_node'
+ESTIMATOR_MODULE = 'drift_control.nodes.estimator_node'
 # nodes whose ``set`` parameter takes scenario overrides (the bridge's takes bridge.yaml keys)
 SCENARIO_MODULES = (SIM_MODULE, 'drift_control.nodes.reference_node',
-                    'drift_control.nodes.nmpc_node')
+                    'drift_control.nodes.nmpc_node', ESTIMATOR_MODULE)
 
 
 @dataclass(frozen=True)
@@ -129,6 +130,19 @@ class _NoAliases(yaml.SafeDumper):
         return True
 
 
+def with_estimator(nodes: list[NodeSpec], node_params: dict) -> list[NodeSpec]:
+    """The graph with the estimator stage after its simulator: the simulator then publishes
+    its sensor samples, the estimator the state. ParamError for a graph without a simulator on
+    ROS topics (the bridge does not carry the sensor units yet)."""
+    sims = [n for n in nodes if n.module == SIM_MODULE and node_params.get(n.name, {})
+            .get('ros__parameters', {}).get('io', 'ros') == 'ros']
+    if not sims:
+        raise ParamError('--sensors: the graph has no simulator publishing on ROS topics '
+                         '(the bridge and the link graphs do not carry the sensor units yet)')
+    at = nodes.index(sims[0]) + 1
+    return [*nodes[:at], NodeSpec('estimator', ESTIMATOR_MODULE), *nodes[at:]]
+
+
 @dataclass(frozen=True)
 class RunOptions:
     """What one launch shares between all nodes."""
@@ -148,6 +162,11 @@ class RunOptions:
     run_info_file: Path | None = None      # the run's settings, for the recorder to keep
     node_overrides: dict = field(default_factory=dict)   # node name -> {param: value} (-p)
     extra_params: dict = field(default_factory=dict)   # name -> value, for every node
+    sensors: str = ''                      # the simulator's sensor set; '': its measured state
+    estimator: str = 'ekf'                 # with sensors: 'ekf' or 'none' (newest samples)
+    sensor_set: tuple = ()                 # sensor set overrides key=value
+    sensor_faults: tuple = ()              # unit[.channel]:kind:start:end[:value]
+    estimator_set: tuple = ()              # config/estimator.yaml overrides key=value
 
     def __post_init__(self):
         if self.clock not in CLOCK_MODES:
@@ -204,6 +223,15 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
         own = (node_params.get(spec.name, {}).get('ros__parameters', {}).get('set') or []) \
             if node_params else []
         params['set'] = [*own, *opts.overrides]
+    if spec.module == SIM_MODULE and opts.sensors:
+        params['sensors'] = opts.sensors
+        for name in ('sensor_set', 'sensor_faults'):
+            if getattr(opts, name):
+                params[name] = list(getattr(opts, name))
+    if spec.module == ESTIMATOR_MODULE:
+        params['estimator'] = opts.estimator
+        if opts.estimator_set:
+            params['estimator_set'] = list(opts.estimator_set)
     params.update(opts.extra_params)
     params.update(opts.node_overrides.get(spec.name, {}))
     argv = [opts.python, '-m', spec.module, '--ros-args', '-r', f'__node:={spec.name}',

@@ -34,6 +34,7 @@ class BagSummary:
     duration_s: float                  # first to last message of the bag [s]
     topics: dict                       # name -> TopicStats
     metrics: dict = field(default_factory=dict)   # name_with_unit -> float
+    state_source: str = ''             # what the controller's state came from (the run's record)
 
 
 def topic_stats(name: str, msgtype: str, messages: list[BagMessage]) -> TopicStats:
@@ -95,13 +96,29 @@ def summarize_bag(bag_dir, backend: str = 'rosbags') -> BagSummary:
     topics = {name: topic_stats(name, info.topics[name].msgtype if name in info.topics else '?',
                                 msgs)
               for name, msgs in sorted(messages.items())}
-    return BagSummary(Path(bag_dir), info.duration, topics, run_metrics(messages))
+    return BagSummary(Path(bag_dir), info.duration, topics, run_metrics(messages),
+                      state_source(bag_dir))
+
+
+def state_source(bag_dir) -> str:
+    """'sensors realistic -> estimator ekf', 'no estimator' or '' (no run record)."""
+    from drift_tools.run_info import read_run_info
+    info = read_run_info(bag_dir)
+    if not info:
+        return ''
+    if info.get('sensors'):
+        faults = info.get('sensor_faults', '[]')
+        return (f'sensors {info["sensors"]} -> estimator {info.get("estimator") or "?"}'
+                + (f', faults {faults}' if faults not in ('', '[]') else ''))
+    return 'no estimator'
 
 
 def format_summary(summary: BagSummary) -> str:
     """A plain-text table of :class:`BagSummary` for the terminal."""
     lines = [f'bag {summary.path}: {summary.duration_s:.1f} s, '
              f'{sum(t.count for t in summary.topics.values())} messages']
+    if summary.state_source:
+        lines.append(f'  state: {summary.state_source}')
     width = max([len(n) for n in summary.topics] + [5])
     lines.append(f'  {"topic".ljust(width)}  {"count":>7}  {"rate Hz":>8}  {"max gap s":>9}  type')
     for t in summary.topics.values():

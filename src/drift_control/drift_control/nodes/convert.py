@@ -13,6 +13,7 @@ from drift_msgs import msg
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
 
+from drift_control.estimator import FIELDS, SensorSample
 from drift_control.signals import (Command, Direction, Equilibrium, Mode, Reference,
                                    VehicleState)
 
@@ -139,6 +140,52 @@ def status_to_msg(result, stamp=None, frame_id: str = BODY_FRAME) -> msg.NmpcSta
     return m
 
 
+SENSOR_UNITS = tuple(FIELDS)   # SensorSample.UNIT_* in this order
+
+
+def sensor_samples_to_msg(samples, stamp, t: float | None = None) -> msg.SensorSamples:
+    """``estimator.SensorSample``s that arrived together at ``stamp`` -> SensorSamples message.
+
+    ``t``: the samples' own clock at ``stamp`` (a simulator's time in a real-time run): each
+    sample is then stamped ``stamp`` minus its age ``t - sample.stamp``; None: as it is.
+    """
+    m = msg.SensorSamples()
+    m.header.stamp = time_to_msg(stamp)
+    m.header.frame_id = BODY_FRAME
+    arrival = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+    for s in samples:
+        ns = (arrival - int(round((t - s.stamp) * 1e9)) if t is not None
+              else int(round(s.stamp * 1e9)))
+        m.samples.append(msg.SensorSample(
+            stamp=Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000),
+            unit=SENSOR_UNITS.index(s.unit), values=[float(v) for v in s.values]))
+    return m
+
+
+def sensor_samples_from_msg(m: msg.SensorSamples, epoch: int = 0):
+    """SensorSamples message -> (arrival [s], list of ``estimator.SensorSample``), times minus
+    ``epoch`` whole seconds (wall-clock stamps keep their nanoseconds in a float that way),
+    rounded to the nanosecond as the simulator's own stamps are: the estimator then steps on
+    the very floats of the one-process loop (``drift_sim.closed_loop``).
+
+    ValueError for a unit out of range, a wrong number of values or a non-finite one.
+    """
+    def seconds(t):
+        return round((t.sec - epoch) + 1e-9 * t.nanosec, 9)
+
+    samples = []
+    for s in m.samples:
+        if s.unit >= len(SENSOR_UNITS):
+            raise ValueError(f'sensor unit {s.unit} out of range 0..{len(SENSOR_UNITS) - 1}')
+        unit = SENSOR_UNITS[s.unit]
+        values = tuple(float(v) for v in s.values)
+        if len(values) != len(FIELDS[unit]) or not all(math.isfinite(v) for v in values):
+            raise ValueError(f'{unit} sample needs {len(FIELDS[unit])} finite values '
+                             f'{FIELDS[unit]}, got {list(values)}')
+        samples.append(SensorSample(unit, seconds(s.stamp), values))
+    return seconds(m.header.stamp), samples
+
+
 def decode(convert, msg, logger=None):
     """``convert(msg)``, or None for a malformed message (an enum out of range, a wrong-length
     array): a message is rejected with its reason, it never ends a node."""
@@ -151,7 +198,7 @@ def decode(convert, msg, logger=None):
         return None
 
 
-__all__ = ['command_from_msg', 'command_to_msg', 'decode', 'equilibrium_from_msg',
-           'equilibrium_to_msg',
-           'path_to_msg', 'reference_from_msg', 'reference_to_msg', 'state_from_msg',
-           'state_to_msg', 'status_to_msg', 'time_from_msg', 'time_to_msg']
+__all__ = ['SENSOR_UNITS', 'command_from_msg', 'command_to_msg', 'decode', 'equilibrium_from_msg',
+           'equilibrium_to_msg', 'path_to_msg', 'reference_from_msg', 'reference_to_msg',
+           'sensor_samples_from_msg', 'sensor_samples_to_msg', 'state_from_msg', 'state_to_msg',
+           'status_to_msg', 'time_from_msg', 'time_to_msg']

@@ -4,7 +4,7 @@ import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
-from drift_msgs.msg import DriftCommand, DriftReference, VehicleState
+from drift_msgs.msg import DriftCommand, DriftReference, SensorSamples, VehicleState
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.task import Future
@@ -59,6 +59,11 @@ class SimNode(Node):
         # the bridge.yaml overrides naming the link, the same ones the bridge node gets
         link_set = [o for o in self.declare_parameter('link_set', ['']).value if o]
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
+        # the car's sensor units (config/sim/sensors/<name>.yaml) on vehicle/sensors for the
+        # estimator node, instead of the plant's measured state on vehicle/state; '': the latter
+        sensors = self.declare_parameter('sensors', '').value
+        sensor_set = [o for o in self.declare_parameter('sensor_set', ['']).value if o]
+        sensor_faults = [o for o in self.declare_parameter('sensor_faults', ['']).value if o]
         for name, value in (('duration', duration), ('command_period', period),
                             ('lockstep_timeout', timeout), ('startup_timeout', startup),
                             ('command_timeout', self._command_timeout)):
@@ -74,6 +79,17 @@ class SimNode(Node):
         loaded = load_scenario(scenario, overrides, cfg, seed=None if seed < 0 else seed,
                                vehicle=vehicle or None)
         self._sim = Simulator(loaded)
+        self._sensors = self._frame = None
+        if sensors:
+            from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
+            if io != 'ros':
+                raise ParamError('sim: sensors need io ros (the bridge does not carry the '
+                                 'sensor units yet)')
+            self._sensors = Sensors(load_sensor_params(sensors, cfg, sensor_set), self._sim.dt,
+                                    self._sim.plant.seed, [parse_fault(f) for f in sensor_faults])
+            self._frame = self._sensors.reset(self._sim.truth.state)
+        elif sensor_set or sensor_faults:
+            raise ParamError('sim: sensor_set and sensor_faults need sensors')
         self._gate = LockstepGate(self._sim.dt, period, timeout, startup, wait_reference)
         self._command = None
         self._command_wall = self._started = time.monotonic()
@@ -96,7 +112,10 @@ class SimNode(Node):
         elif io != 'ros':
             raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
+        if self._sensors is None:
+            self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
+        else:   # the estimator node publishes the state
+            self._sensor_pub = self.create_publisher(SensorSamples, 'vehicle/sensors', reliable)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
         self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
         self._inputs = [
@@ -190,7 +209,7 @@ class SimNode(Node):
                 # see the first state: offer it again until the first command (state only; the
                 # recorded truth and clock stay one message per step)
                 self._offered = time.monotonic()
-                self._state_pub.publish(convert.state_to_msg(self._sim.state, self._sim.t))
+                self._publish_measured(self._sim.state, self._sim.t)
             # as many steps as the gate allows (up to the next command), then back to spin
             for _ in range(self._gate.every):
                 if self._sim.done or not self._gate.ready(self._sim.t, time.monotonic()):
@@ -207,7 +226,7 @@ class SimNode(Node):
                     self.get_logger().warning(f'lockstep: no command for t={self._sim.t:.2f} s '
                                               f'({self._gate.timeouts} timeouts); stepping on',
                                               throttle_duration_sec=2.0)
-                self._publish(self._sim.step(self._command))
+                self._publish(self._step())
             return
         if self._can is None:   # on CAN the bridge's heartbeat judges the commands
             wall = time.monotonic()
@@ -227,7 +246,7 @@ class SimNode(Node):
                 self._can.step(time.monotonic())
                 self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
             else:
-                self._publish(self._sim.step(self._command), stamp)
+                self._publish(self._step(), stamp)
         if self._pacer.skipped != skipped:
             self.get_logger().warning(f'real time: stalled, {self._pacer.skipped} steps of '
                                       f'{1e3 * self._sim.dt:g} ms dropped so far',
@@ -241,9 +260,17 @@ class SimNode(Node):
 
     def _end(self, ok: bool) -> None:
         """End the run once the recorder has acknowledged the last states (reliable QoS)."""
-        for pub in (self._state_pub, self._truth_pub, self._clock_pub):
+        measured = self._state_pub if self._sensors is None else self._sensor_pub
+        for pub in (measured, self._truth_pub, self._clock_pub):
             pub.wait_for_all_acked(Duration(seconds=1.0))
         self.finished.set_result(ok)
+
+    def _step(self):
+        """One plant step under the newest command; the sensor samples that arrive with it."""
+        state = self._sim.step(self._command)
+        if self._sensors is not None:
+            self._frame = self._sensors.step(self._sim.truth.state)
+        return state
 
     def _publish(self, state, stamp=None):
         """The measured and true state; lock-step: stamped in sim time, with /clock."""
@@ -252,8 +279,16 @@ class SimNode(Node):
             self._clock_pub.publish(Clock(clock=convert.time_to_msg(stamp)))
         elif stamp is None:
             stamp = self.get_clock().now()
-        self._state_pub.publish(convert.state_to_msg(state, stamp))
+        self._publish_measured(state, stamp)
         self._truth_pub.publish(convert.state_to_msg(self._sim.truth.state, stamp))
+
+    def _publish_measured(self, state, stamp):
+        """The plant's measured state, or the sensor samples of this step (``sensors``)."""
+        if self._sensors is None:
+            self._state_pub.publish(convert.state_to_msg(state, stamp))
+        else:
+            self._sensor_pub.publish(convert.sensor_samples_to_msg(self._frame, stamp,
+                                                                   self._sim.t))
 
 
 def main(args=None) -> int:
