@@ -3,9 +3,11 @@
 
     latency.py BAG [--skip 1.0] [--json]
 
-Each command is matched to the newest state recorded before it; prints p50, p99 and max over the
-commands after the first ``--skip`` seconds. A lock-step bag (log times in sim time) is refused.
-The bag is only read; an MDF4 export is read as well.
+Each command is matched to the newest state recorded before it (with the estimator stage: the
+newest frame of sensor samples); prints p50, p99 and max over the commands after the first
+``--skip`` seconds, then the same hop by hop along each command's stamp (sensors -> state ->
+reference -> command). A lock-step bag (log times in sim time) is refused. The bag is only
+read; an MDF4 export is read as well.
 """
 import argparse
 import json
@@ -21,7 +23,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from drift_tools.bag_salvage import BagDamagedError
-    from drift_tools.latency import latency
+    from drift_tools.latency import latency, stages
     from drift_tools.mdf import log_run_info, read_log
     if not args.bag.exists():
         print(f'latency: {args.bag}: no such bag', file=sys.stderr)
@@ -33,15 +35,22 @@ def main(argv=None) -> int:
                   f'it has no latency to measure (record one with --clock realtime)',
                   file=sys.stderr)
             return 2
-        result = latency(read_log(args.bag), args.skip)
+        messages = read_log(args.bag)
+        result = latency(messages, args.skip)
+        hops = stages(messages, args.skip) if not args.bag.is_file() else {}
     except (BagDamagedError, OSError, ValueError) as err:
         print(f'latency: {args.bag}: {err}', file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(result.as_dict()))
-    else:
-        print(f'state -> command over {result.n} commands: p50 {1e3 * result.p50:.1f} ms, '
-              f'p99 {1e3 * result.p99:.1f} ms, max {1e3 * result.max:.1f} ms')
+        print(json.dumps({**result.as_dict(),
+                          'stages': {k: v.as_dict() for k, v in hops.items()}}))
+        return 0
+    start = 'sensors' if result.source.endswith('sensors') else 'state'
+    print(f'{start} -> command over {result.n} commands: p50 {1e3 * result.p50:.1f} ms, '
+          f'p99 {1e3 * result.p99:.1f} ms, max {1e3 * result.max:.1f} ms')
+    for name, hop in hops.items():
+        print(f'  {name} ({hop.n}): p50 {1e3 * hop.p50:.2f} ms, p99 {1e3 * hop.p99:.2f} ms, '
+              f'max {1e3 * hop.max:.2f} ms')
     return 0
 
 

@@ -46,3 +46,33 @@ def test_the_script_prints_percentiles_and_refuses_a_lockstep_bag(tmp_path, caps
     err = capsys.readouterr().err
     assert 'lock-step' in err and len(err.strip().splitlines()) == 1
     assert latency.main([str(tmp_path / 'nothing')]) == 2
+
+
+def test_with_the_estimator_the_path_starts_at_the_sensors_and_splits_hop_by_hop(tmp_path,
+                                                                                   capsys):
+    from builtin_interfaces.msg import Time
+    path = tmp_path / 'est'
+    hops = [('/vehicle/sensors', 'SensorSamples', 0.0), ('/vehicle/state', 'VehicleState', 0.001),
+            ('/drift/reference', 'DriftReference', 0.003), ('/drift/command', 'DriftCommand',
+                                                             0.0045)]
+    with BagWriter(path) as bag:
+        for topic, name, _ in hops:
+            bag.add_topic(topic, f'drift_msgs/msg/{name}')
+        bag.add_metadata('drift_run', {'clock': 'realtime'})
+        for k in range(300):
+            t = 1000.0 + 0.01 * k
+            for topic, name, delay in hops:
+                if topic != '/vehicle/sensors' and k % 2:
+                    continue   # states, references and commands of every other frame only
+                m = getattr(msgs, name)()
+                m.header.stamp = Time(sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+                bag.write(topic, ser.serialize_message(m), int(round((t + delay) * 1e9)))
+    latency = load_script('latency')
+    assert latency.main([str(path), '--json']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['from'] == '/vehicle/sensors' and out['p50_ms'] == pytest.approx(4.5, abs=1e-3)
+    stages = out['stages']
+    assert stages['/vehicle/sensors -> /vehicle/state']['p50_ms'] == pytest.approx(1.0, abs=1e-3)
+    assert stages['/vehicle/state -> /drift/reference']['max_ms'] == pytest.approx(2.0, abs=1e-3)
+    assert stages['/drift/reference -> /drift/command']['p99_ms'] == pytest.approx(1.5, abs=1e-3)
+    assert stages['/vehicle/sensors -> /drift/command']['commands'] == 100
