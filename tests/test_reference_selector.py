@@ -375,3 +375,37 @@ def test_a_drift_on_a_wide_curve_is_on_its_planned_side():
         ref = sel.select(state_on(path, 140.0))
         assert ref.direction == direction
     assert ref.target.beta > 0.0 and ref.target.r < 0.0   # right: beta > 0, turning clockwise
+
+
+@pytest.mark.parametrize('direction', [Direction.LEFT, Direction.RIGHT])
+def test_a_slide_in_the_entry_is_caught_latched_capped_and_lapses_after_it(direction):
+    """A car that slides before the entry ramp asks for it gets a reference that continues from
+    its slide (not a pull back to grip); the floor holds while the slide eases, never exceeds the
+    drift sideslip and ends with the entry."""
+    prof = P.SideslipProfile(math.radians(30.0), grip_until=20.0, ramp_length=40.0)
+    path = P.circle(R, direction, sideslip=prof)
+    d = int(direction)
+    sel = ReferenceSelector(steady_circle_lookup, path, params(catch_beta=math.radians(8.0)))
+    beta_ref = []
+    for k, (s, slide_deg) in enumerate([(2.0, 1.0), (4.0, 5.0), (6.0, 15.0), (8.0, 12.0),
+                                        (10.0, 45.0), (12.0, 20.0), (70.0, 20.0)]):
+        st = state_on(path, s, t=0.5 * k, beta=-d * math.radians(slide_deg))
+        beta_ref.append(math.degrees(-d * sel.select(st).target.beta))
+    assert beta_ref[:2] == pytest.approx([0.0, 0.0])         # grip, and slides within grip
+    assert beta_ref[2] == pytest.approx(15.0)                  # caught
+    assert beta_ref[3] == pytest.approx(15.0)                  # latched while the slide eases
+    assert beta_ref[4] == pytest.approx(30.0)                  # at most the drift sideslip
+    assert beta_ref[5] == pytest.approx(30.0)
+    assert beta_ref[6] == pytest.approx(30.0)                  # after the entry: the profile
+    ref = sel.select(state_on(path, 10.0, t=10.0, beta=-d * math.radians(20.0)))
+    assert all(abs(eq.beta) >= abs(ref.target.beta) - 1e-9 for eq in ref.horizon)
+
+
+def test_a_slide_to_the_other_side_or_with_the_catch_off_is_not_caught():
+    prof = P.SideslipProfile(math.radians(30.0), grip_until=20.0, ramp_length=40.0)
+    path = P.circle(R, Direction.LEFT, sideslip=prof)
+    for over, beta_deg in (({'catch_beta': math.radians(8.0)}, 15.0), ({}, -15.0)):
+        sel = ReferenceSelector(steady_circle_lookup, path, params(**over))
+        for k in range(3):
+            ref = sel.select(state_on(path, 2.0 + k, t=0.5 * k, beta=math.radians(beta_deg)))
+        assert ref.target.beta == pytest.approx(0.0)

@@ -55,6 +55,11 @@ class SideslipProfile:
     ramp_length: float = 0.0
     knots: tuple[tuple[float, float], ...] = ()
 
+    @property
+    def entry_end(self) -> float:
+        """Unwrapped arc length where the entry ramp reaches the drift sideslip [m]."""
+        return self.grip_until + self.ramp_length
+
     def beta_abs(self, s, s_lap, length: float, closed: bool):
         """Desired |beta| [rad] at unwrapped arc length ``s`` and lap position ``s_lap`` [m]."""
         if self.knots:
@@ -157,6 +162,11 @@ class Path:
     def beta_at(self, s):
         """Desired sideslip magnitude [rad] at unwrapped arc length ``s`` [m]."""
         return self.sideslip.beta_abs(s, self.lap_position(s), self.length, self.closed)
+
+    def drift_beta_at(self, s):
+        """The drift sideslip magnitude the entry ramps to at ``s`` [rad] (no entry ramp)."""
+        return self.sideslip.beta_abs(np.maximum(s, self.sideslip.entry_end), self.lap_position(s),
+                                      self.length, self.closed)
 
     def direction_at(self, s) -> Direction:
         """Drift direction at ``s``: the sign of the curvature."""

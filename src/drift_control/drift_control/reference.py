@@ -58,6 +58,8 @@ class ReferenceParams:
     side_from_path_beta: float = 0.05   # ... on a straight only while the sideslip reference
                                   # is above this [rad]; in grip the corrected curvature's
     course_yaw: bool = True       # yaw-rate reference r_eq - d(beta_ref)/dt (see _course_yaw)
+    catch_beta: float = 0.0       # in the entry, a slide to the drift side beyond this [rad] is
+                                  # caught: the reference continues from it (0: off)
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
     window_forward: float = 15.0  # ... and ahead of it [m]
     lost_distance: float = 5.0    # beyond this distance from the path search globally [m]
@@ -149,6 +151,7 @@ class ReferenceSelector:
         self._last: Reference | None = None
         self._integral = 0.0
         self._beta_ref = self._w = None
+        self._caught = 0.0     # sideslip of a slide caught in the entry [rad]
         self.rejected = 0      # states refused as non-finite or without a pose
 
     def reset(self, s_hint: float | None = None) -> None:
@@ -156,6 +159,7 @@ class ReferenceSelector:
         search for the path position (or a local one around ``s_hint`` [m])."""
         self.frenet.reset(s_hint)
         self._last, self._integral, self._beta_ref, self._w = None, 0.0, None, None
+        self._caught = 0.0
 
     def side_weight(self, K: float) -> float:
         """Weight of the left equilibrium [-]: 1 for ``K >= band``, 0 for ``K <= -band``, a
@@ -205,6 +209,22 @@ class ReferenceSelector:
         return p.side_from_path and (beta_abs > p.side_from_path_beta
                                      or abs(K_path) >= (p.side_band or 1.0 / p.radius_max))
 
+    def _catch(self, state: VehicleState, s: float) -> float:
+        """The sideslip of a slide the entry catches [rad] (0: none).
+
+        A car with less rear grip than the map's starts to slide before the entry ramp asks for
+        it; pulling it back to grip fights the slide (torque bang-bang, then a spin). In the
+        entry, a slide to the drift side beyond ``catch_beta`` becomes the reference's floor,
+        latched and at most the drift sideslip the ramp leads to; after the entry it lapses.
+        """
+        if self.p.catch_beta <= 0.0 or s >= self.path.sideslip.entry_end or self._w is None:
+            self._caught = 0.0
+            return 0.0
+        slide = -state.beta if self._w >= 0.5 else state.beta   # a left drift has beta < 0
+        if slide > self.p.catch_beta:
+            self._caught = max(self._caught, min(slide, float(self.path.drift_beta_at(s))))
+        return self._caught
+
     def _radius(self, K_cmd: float) -> float:
         """The lookup radius of a curvature, limited to the map range [m]."""
         return 1.0 / max(min(abs(K_cmd), 1.0 / self.p.radius_min), 1.0 / self.p.radius_max)
@@ -244,7 +264,8 @@ class ReferenceSelector:
                                  min(p.integral_limit, self._integral + side * fp.e_y * dt))
         if limited:
             K_cmd = _limit(last.curvature_cmd, K_cmd, p.curvature_rate_max * dt)
-        beta_abs = self._holdable(float(self.path.beta_at(fp.s)), K_cmd, fp.s)
+        beta_abs = self._holdable(max(float(self.path.beta_at(fp.s)), self._catch(state, fp.s)),
+                                  K_cmd, fp.s)
         if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
@@ -291,6 +312,9 @@ class ReferenceSelector:
         # the path along the whole horizon in one call each; the limits run stage by stage
         s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
         K_paths, betas = self.path.curvature_at(s_k), self.path.beta_at(s_k)
+        if self._caught > 0.0:   # a caught slide holds the stages still in the entry
+            betas = np.where(s_k < self.path.sideslip.entry_end,
+                             np.maximum(betas, self._caught), betas)
         planned = self.path.side_at(s_k).tolist() if self.path.side is not None else None
         # _limit and side_weight written out: 24 stages a cycle, the same operations
         dK, dbeta, dw = p.curvature_rate_max * h, p.beta_rate_max * h, p.side_rate_max * h
