@@ -409,3 +409,43 @@ def test_a_slide_to_the_other_side_or_with_the_catch_off_is_not_caught():
         for k in range(3):
             ref = sel.select(state_on(path, 2.0 + k, t=0.5 * k, beta=math.radians(beta_deg)))
         assert ref.target.beta == pytest.approx(0.0)
+
+
+def exit_path():
+    """A left drift circle leaving through a clothoid onto a straight, the sideslip falling
+    from 30 to 0 deg along the clothoid (no entry ramp: the drift is established)."""
+    k = 1.0 / R
+    prof = P.SideslipProfile(0.0, knots=((0.0, math.radians(30.0)), (90.0, math.radians(30.0)),
+                                         (110.0, 0.0), (300.0, 0.0)))
+    return P.from_segments([(90.0, k, k), (20.0, k, 0.0), (190.0, 0.0, 0.0)], sideslip=prof)
+
+
+def test_leaving_a_drift_the_yaw_rate_unwinds_the_sideslip_and_the_speed_rises_gently():
+    """While the sideslip reference falls the yaw rate carries -d(beta_ref)/dt, as in a flip
+    (else the course turns by the whole 30 deg); the speed reference rises at most
+    speed_rise_max toward the straight's grip speed (the stand-in map: 10.2 -> 18.7 m/s)."""
+    path = exit_path()
+    for rise in (0.0, 2.0):
+        sel = ReferenceSelector(steady_circle_lookup, path, params(speed_rise_max=rise))
+        V_prev, t = None, 0.0
+        for s in np.arange(80.0, 115.0, 0.2):
+            beta_ref = float(path.beta_at(s))
+            ref = sel.select(state_on(path, s, t=t, beta=-beta_ref))
+            if s == pytest.approx(100.0):   # mid-unwinding: 30 deg in 20 m at 10 m/s, 0.26 rad/s
+                assert ref.target.r < float(path.curvature_at(s)) * ref.target.V - 0.2
+            if rise:
+                V_stages = [e.V for e in ref.horizon]
+                assert np.all(np.diff(V_stages) <= rise * 0.02 + 1e-9)
+                if V_prev is not None:
+                    assert ref.target.V <= V_prev + rise * 0.02 + 1e-9
+            V_prev, t = ref.target.V, t + 0.02
+        assert (ref.target.V < math.sqrt(A_LAT * RADIUS_RANGE[1]) - 3.0) == (rise > 0.0)
+
+
+def test_a_steady_drift_is_not_touched_by_the_speed_rise_limit():
+    path = drift_circle()
+    plain = ReferenceSelector(steady_circle_lookup, path, params())
+    limited = ReferenceSelector(steady_circle_lookup, path, params(speed_rise_max=2.0))
+    for k in range(50):
+        st = state_on(path, 30.0 + 0.2 * k, e_y=0.3 * math.sin(k), t=0.02 * k)
+        assert limited.select(st) == plain.select(st)

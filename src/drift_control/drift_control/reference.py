@@ -58,6 +58,9 @@ class ReferenceParams:
     side_from_path_beta: float = 0.05   # ... on a straight only while the sideslip reference
                                   # is above this [rad]; in grip the corrected curvature's
     course_yaw: bool = True       # yaw-rate reference r_eq - d(beta_ref)/dt (see _course_yaw)
+    speed_rise_max: float = 0.0   # leaving a drift (and in grip after the entry) the speed
+                                  # reference rises at most this fast, in time and along the
+                                  # horizon [m/s^2] (0: off)
     catch_beta: float = 0.0       # in the entry, a slide to the drift side beyond this [rad] is
                                   # caught: the reference continues from it (0: off)
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
@@ -284,9 +287,17 @@ class ReferenceSelector:
             self._warn.warning('clamp', 'reference: lookup clamped (off the map grid or in a '
                                'hole) at s=%.1f m (beta %.1f deg, K %.4f 1/m)', fp.s,
                                math.degrees(beta_abs), K_raw)
-        horizon, weights = self._horizon(fp.s, state.V, correction, (K_cmd, beta_abs, w), target)
+        horizon, weights, beta_end = self._horizon(fp.s, state.V, correction,
+                                                   (K_cmd, beta_abs, w), target)
+        after_entry = fp.s >= self.path.sideslip.entry_end
+        # leaving a drift: the sideslip falls along the horizon, or grip driving after it
+        unwinding = beta_end < beta_abs - 1e-3 or beta_abs < p.side_from_path_beta
+        if p.speed_rise_max > 0.0 and after_entry and unwinding:
+            cap = last.target.V + p.speed_rise_max * dt if limited else math.inf
+            horizon = _speed_rise(horizon, cap, p.speed_rise_max * p.horizon_dt)
+            target = horizon[0]
         flipping = any(0.0 < wk < 1.0 for wk in weights)
-        if p.course_yaw and flipping and len(horizon) > 1:   # the rate needs the horizon
+        if p.course_yaw and (flipping or after_entry) and len(horizon) > 1:   # needs stages
             horizon = _course_yaw(horizon, p.horizon_dt)
             target = horizon[0]
         ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
@@ -302,10 +313,10 @@ class ReferenceSelector:
 
     def _horizon(self, s, V, correction, start, target):
         """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 is ``target``), same limits,
-        and their left weights."""
+        their left weights and the last stage's sideslip magnitude [rad]."""
         p, h = self.p, self.p.horizon_dt
         if p.horizon_steps == 0:
-            return (), (start[2],)
+            return (), (start[2],), start[1]
         (K, beta, w) = start
         weights, queries = [w], []
         k_max = 1.0 / p.radius_min
@@ -336,7 +347,8 @@ class ReferenceSelector:
             w = w + max(-dw, min(dw, side - w))
             queries.append((beta, K, w))
             weights.append(w)
-        return (target, *(eq for eq, _, _ in self._equilibria(queries))), tuple(weights)
+        return ((target, *(eq for eq, _, _ in self._equilibria(queries))), tuple(weights),
+                beta)
 
     def _equilibria(self, queries):
         """``[equilibrium(beta_abs, K_cmd, w) for ... in queries]``, the map looked up once."""
@@ -362,6 +374,25 @@ class ReferenceSelector:
                 out.append((_blend(left, right, w), direction, c_l or c_r))
         return out
 
+def _speed_rise(stages: tuple[Equilibrium, ...], cap: float,
+                step: float) -> tuple[Equilibrium, ...]:
+    """The stages with their speed rising at most ``step`` per stage from at most ``cap`` [m/s].
+
+    Leaving a drift for a straight, the map's equilibria ask for the grip speed of its largest
+    radius at once (9 -> 16 m/s in 2 s): the torque that asks for makes the rear slide while it
+    regrips and the car runs wide. A capped stage is the same turn driven slower: speed, yaw
+    rate and wheel speeds scaled together (radius and sideslip kept).
+    """
+    out = []
+    for e in stages:
+        if e.V > cap:
+            f = cap / e.V
+            e = replace(e, V=cap, r=e.r * f, omega_F=e.omega_F * f, omega_R=e.omega_R * f)
+        out.append(e)
+        cap = e.V + step
+    return tuple(out)
+
+
 def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium, ...]:
     """The stages with the yaw rate that keeps the velocity direction on the path while the
     sideslip reference changes.
@@ -371,9 +402,10 @@ def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium
     sideslip moves (the left <-> right flip: 60 deg in about 2 s) the yaw rate must be
     ``r_eq - d(beta_ref)/dt`` for the course to keep turning with the path. Tracking ``r_eq``
     and the moving sideslip together would turn the course by the whole sideslip change (the
-    flip's lateral overshoot: 4.4 m without, 0.6 m with). The rate is a central difference
-    along the stages. Applied while a flip is in the horizon; the entry ramp's rate (~0.1 rad/s)
-    is left out (docs/tuning_log.md).
+    flip's lateral overshoot: 4.4 m without, 0.6 m with; an exit's 30 deg unwinding ran the
+    car 3-8 m wide). The rate is a central difference along the stages. Applied while a flip
+    is in the horizon and after the entry; the entry ramp's rate (~0.1 rad/s) is left out
+    (docs/tuning_log.md).
     """
     beta = [e.beta for e in stages]
     n = len(beta)
