@@ -23,8 +23,8 @@ from drift_control.params import ParamError, config_dir, split_override, vehicle
 from drift_tools.launcher import Launcher
 from drift_control.estimator import ESTIMATORS
 from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, SIM_MODULE,
-                               RunOptions, load_stack, node_command, node_env, with_estimator,
-                               write_params_file)
+                               ESTIMATOR_PLACES, RunOptions, load_stack, node_command, node_env,
+                               with_estimator, write_params_file)
 
 
 
@@ -96,6 +96,10 @@ def parse_args(argv=None):
                         'plant\'s measured state, no estimator)')
     p.add_argument('--estimator', choices=ESTIMATORS, default='ekf',
                    help='with --sensors: fuse them (ekf) or pass the newest samples (none)')
+    p.add_argument('--estimator-in', choices=ESTIMATOR_PLACES, default='nmpc',
+                   help='with --sensors: estimator and selector inside the NMPC node (one DDS '
+                        'hop from the samples to the command; default), or an estimator node '
+                        'before the reference and NMPC nodes (three hops)')
     p.add_argument('--sensor-set', action='append', default=[], metavar='KEY=VALUE',
                    help='override a sensor key (ins.channels.beta.std=0.003)')
     p.add_argument('--sensor-fault', action='append', default=[], metavar='FAULT',
@@ -137,7 +141,7 @@ def main(argv=None) -> int:
         nodes = stack.graph(args.graph, [n for n in args.nodes.split(',') if n])
         check_sensors(args, cfg_dir)
         if args.sensors:   # the estimator stage between the simulator and the controller
-            nodes = with_estimator(nodes, stack.node_params)
+            nodes = with_estimator(nodes, stack.node_params, args.estimator_in)
         clock = args.clock or stack.defaults.get('clock', 'realtime')
         if clock == 'lockstep' and stack.clock_owner not in {n.name for n in nodes}:
             if args.clock == 'lockstep':   # nobody would publish /clock: no timer ever fires
@@ -171,7 +175,8 @@ def main(argv=None) -> int:
             run_info.write_text(json.dumps(collect(
                 cfg_dir, scenario=scenario, vehicle=args.vehicle or '', seed=args.seed,
                 overrides=args.set, graph=args.graph, clock=clock,
-                sensors=args.sensors, estimator=args.estimator if args.sensors else '',
+                sensors=args.sensors,
+                estimator=f'{args.estimator} in {args.estimator_in}' if args.sensors else '',
                 sensor_faults=args.sensor_fault,
                 argv=[sys.executable, *sys.argv] if argv is None else ['run_stack.py', *argv])))
         opts = RunOptions(params_file=write_params_file(stack, params_dir / 'stack_params.yaml'),
@@ -184,6 +189,7 @@ def main(argv=None) -> int:
                           vehicle=args.vehicle or '',
                           discovery_range=args.discovery_range,
                           sensors=args.sensors, estimator=args.estimator,
+                          estimator_in=args.estimator_in,
                           sensor_set=tuple(args.sensor_set),
                           sensor_faults=tuple(args.sensor_fault),
                           estimator_set=tuple(args.estimator_set))
@@ -211,8 +217,9 @@ def main(argv=None) -> int:
         return 2
 
     if any(n.module == SIM_MODULE for n in nodes):
-        print('[launch] state: ' + (f'sensors {args.sensors} -> estimator {args.estimator}'
-                                    if args.sensors else 'the plant\'s measured state'))
+        print('[launch] state: ' + (f'sensors {args.sensors} -> estimator {args.estimator} '
+                                    f'in {args.estimator_in}' if args.sensors
+                                    else 'the plant\'s measured state'))
     launcher = Launcher(kill_timeout=args.kill_timeout)
     launcher.install_signal_handlers()
     env = node_env(opts)

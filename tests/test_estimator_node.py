@@ -100,3 +100,30 @@ def test_sim_with_sensors_feeds_the_estimator_node(monkeypatch):
             outs.append(p.communicate(timeout=30)[0])
     assert 'rejected a malformed SensorSamples: sensor unit 7 out of range' in outs[1], outs[1]
     assert 'ekf for m3_competition' in outs[1], outs[1]
+
+
+@pytest.mark.slow
+def test_the_lockstep_graph_with_sensors_is_the_one_process_loop_bit_for_bit(tmp_path):
+    """run_stack --sensors (estimator and selector in the NMPC's process) against
+    drift_sim.closed_loop with the same sensors and estimator: the same code, the same run."""
+    import numpy as np
+    from drift_sim.closed_loop import run_closed_loop
+    from drift_tools.bag import read_bag
+    from drift_tools.timeseries import series_from_bag
+    from conftest import REPO
+    proc = subprocess.run(
+        [sys.executable, str(REPO / 'scripts' / 'run_stack.py'), '--scenario', 'steady_dry',
+         '--clock', 'lockstep', '--sim-duration', '3', '--duration', '80', '--sensors',
+         'realistic', '--bag', str(tmp_path / 'bag'), '--domain-id', '123', '--no-summary'],
+        env={**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'},
+        capture_output=True, text=True, timeout=90)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    assert 'state: sensors realistic -> estimator ekf in nmpc' in proc.stdout
+    truth = series_from_bag(read_bag(tmp_path / 'bag')).truth
+    _, trace = run_closed_loop('steady_dry', ['duration=3'], sensors='realistic', estimator='ekf')
+    at = {round(t, 6): i for i, t in enumerate(trace['t'])}
+    rows = [(i, at[round(t, 6)]) for i, t in enumerate(truth['t']) if round(t, 6) in at]
+    assert len(rows) >= 299, f'only {len(rows)} common samples'
+    for key in ('V', 'beta', 'r', 'delta', 'x', 'y'):
+        np.testing.assert_array_equal([truth[key][i] for i, _ in rows],
+                                      [trace[key][j] for _, j in rows], err_msg=key)

@@ -1,5 +1,6 @@
 """Launcher and stack config in-process, with plain Python children (no ROS needed)."""
 import ast
+import dataclasses
 import io
 import sys
 import threading
@@ -228,22 +229,30 @@ def test_node_command_and_clock_ownership(tmp_path, clock):
 
 
 def test_the_estimator_stage_follows_the_simulator_and_gets_the_sensors(tmp_path):
-    from drift_tools.stack import ESTIMATOR_MODULE, with_estimator
+    from drift_tools.stack import ESTIMATOR_MODULE, NMPC_MODULE, with_estimator
     cfg = load_stack(REPO / 'config' / 'stack.yaml')
-    nodes = with_estimator(cfg.graph('sim'), cfg.node_params)
+    # in the NMPC's process with the selector (one hop), or a node of its own (three)
+    assert [n.name for n in with_estimator(cfg.graph('sim'), cfg.node_params)] == [
+        'sim', 'nmpc', 'recorder']
+    nodes = with_estimator(cfg.graph('sim'), cfg.node_params, 'node')
     assert [n.name for n in nodes] == ['sim', 'estimator', 'reference', 'nmpc', 'recorder']
     for graph in ('vehicle', 'sim_can'):   # no simulator on ROS topics: refused
         with pytest.raises(ParamError, match='--sensors'):
             with_estimator(cfg.graph(graph), cfg.node_params)
     opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path, scenario='s',
                       overrides=('surface.mu=0.9',), sensors='realistic', estimator='none',
-                      sensor_faults=('ins:dropout:1:2',))
+                      sensor_faults=('ins:dropout:1:2',), estimator_in='node')
     p_sim = _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'), opts))
     p_est = _params(node_command(NodeSpec('estimator', ESTIMATOR_MODULE), opts))
     assert yaml.safe_load(p_sim['sensors']) == 'realistic'
     assert yaml.safe_load(p_sim['sensor_faults']) == ['ins:dropout:1:2']
     assert yaml.safe_load(p_est['estimator']) == 'none' and 'sensors' not in p_est
     assert yaml.safe_load(p_est['set']) == ['surface.mu=0.9']
+    assert 'state_source' not in _params(node_command(NodeSpec('nmpc', NMPC_MODULE), opts))
+    p_nmpc = _params(node_command(NodeSpec('nmpc', NMPC_MODULE),
+                                  dataclasses.replace(opts, estimator_in='nmpc')))
+    assert yaml.safe_load(p_nmpc['state_source']) == 'sensors'
+    assert yaml.safe_load(p_nmpc['estimator']) == 'none'
     plain = _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'),
                                  RunOptions(params_file=tmp_path, config_dir=tmp_path)))
     assert 'sensors' not in plain, 'the default graph: the simulator as it was'

@@ -130,15 +130,32 @@ class _NoAliases(yaml.SafeDumper):
         return True
 
 
-def with_estimator(nodes: list[NodeSpec], node_params: dict) -> list[NodeSpec]:
-    """The graph with the estimator stage after its simulator: the simulator then publishes
-    its sensor samples, the estimator the state. ParamError for a graph without a simulator on
-    ROS topics (the bridge does not carry the sensor units yet)."""
+REFERENCE_MODULE = 'drift_control.nodes.reference_node'
+NMPC_MODULE = 'drift_control.nodes.nmpc_node'
+ESTIMATOR_PLACES = ('nmpc', 'node')
+
+
+def with_estimator(nodes: list[NodeSpec], node_params: dict, place: str = 'nmpc') \
+        -> list[NodeSpec]:
+    """The graph with the estimator stage: the simulator then publishes its sensor samples.
+
+    ``place='nmpc'``: estimator and selector run inside the NMPC node (one DDS hop from the
+    samples to the command), the reference node leaves the graph; ``'node'``: an estimator
+    node after the simulator publishes the state for the reference and NMPC nodes. ParamError
+    for a graph without a simulator on ROS topics (the bridge does not carry the sensor units
+    yet).
+    """
     sims = [n for n in nodes if n.module == SIM_MODULE and node_params.get(n.name, {})
             .get('ros__parameters', {}).get('io', 'ros') == 'ros']
     if not sims:
         raise ParamError('--sensors: the graph has no simulator publishing on ROS topics '
                          '(the bridge and the link graphs do not carry the sensor units yet)')
+    if place not in ESTIMATOR_PLACES:
+        raise ParamError(f'estimator place {place!r} not in {list(ESTIMATOR_PLACES)}')
+    if place == 'nmpc':
+        if not any(n.module == NMPC_MODULE for n in nodes):
+            raise ParamError('--estimator-in nmpc: the graph has no NMPC node')
+        return [n for n in nodes if n.module != REFERENCE_MODULE]
     at = nodes.index(sims[0]) + 1
     return [*nodes[:at], NodeSpec('estimator', ESTIMATOR_MODULE), *nodes[at:]]
 
@@ -164,6 +181,7 @@ class RunOptions:
     extra_params: dict = field(default_factory=dict)   # name -> value, for every node
     sensors: str = ''                      # the simulator's sensor set; '': its measured state
     estimator: str = 'ekf'                 # with sensors: 'ekf' or 'none' (newest samples)
+    estimator_in: str = 'nmpc'             # with sensors: in the NMPC's process, or a 'node'
     sensor_set: tuple = ()                 # sensor set overrides key=value
     sensor_faults: tuple = ()              # unit[.channel]:kind:start:end[:value]
     estimator_set: tuple = ()              # config/estimator.yaml overrides key=value
@@ -228,7 +246,10 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
         for name in ('sensor_set', 'sensor_faults'):
             if getattr(opts, name):
                 params[name] = list(getattr(opts, name))
-    if spec.module == ESTIMATOR_MODULE:
+    in_nmpc = spec.module == NMPC_MODULE and opts.sensors and opts.estimator_in == 'nmpc'
+    if in_nmpc:
+        params['state_source'] = 'sensors'
+    if spec.module == ESTIMATOR_MODULE or in_nmpc:
         params['estimator'] = opts.estimator
         if opts.estimator_set:
             params['estimator_set'] = list(opts.estimator_set)

@@ -52,40 +52,46 @@ class EstimatorNode(Node):
             return
         now, samples = frame
         state = self._stepper.step(samples, now)
-        self._log_events()
+        self._reported = log_new_events(self._stepper, self._reported, self.get_logger(),
+                                        self._epoch)
         if state is not None:   # stamped with the frame's own arrival stamp, to the nanosecond
             self._state_pub.publish(convert.state_to_msg(state, msg.header.stamp))
 
-    def _log_events(self):
-        events = getattr(self._stepper.estimator, 'events', ())
-        for e in events[self._reported:]:
-            self.get_logger().warning(f'sensor fault: {e.channel} {e.reason} '
-                                      f'(t = {e.t + (self._epoch or 0):.3f} s)')
-        self._reported = len(events)
-
     def _publish_diagnostics(self):
-        """Cost per step and the NIS over the last second, then forgotten."""
-        est = self._stepper.estimator
-        status = DiagnosticStatus(name='estimator', hardware_id='drift_control',
-                                  level=DiagnosticStatus.OK)
-        status.message = 'running' if self._stepper.state is not None else 'no state yet'
-        times = np.asarray(getattr(est, 'step_times', ()), float) * 1e3
-        if times.size:
-            status.values.append(KeyValue(key='step_ms_p50', value=f'{np.median(times):.3f}'))
-            status.values.append(KeyValue(key='step_ms_max', value=f'{times.max():.3f}'))
-        for name, nis in (est.nis_summary() if hasattr(est, 'nis_summary') else {}).items():
-            status.values.append(KeyValue(key=f'nis_mean {name}', value=f'{nis["mean"]:.2f}'))
-        events = getattr(est, 'events', ())
-        if events:
-            status.level = DiagnosticStatus.WARN
-            status.values.append(KeyValue(key='faults', value=str(len(events))))
-            last = events[-1]
-            status.message = f'last fault: {last.channel} {last.reason}'
-        if hasattr(est, 'clear_records'):
-            est.clear_records()
-        msg = DiagnosticArray(status=[status])
+        msg = DiagnosticArray(status=[estimator_status(self._stepper)])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._diag_pub.publish(msg)
+
+
+def estimator_status(stepper: FrameStepper) -> DiagnosticStatus:
+    """Cost per step and the mean NIS over the records since the last call, which it clears,
+    the fault count and the last fault."""
+    est = stepper.estimator
+    status = DiagnosticStatus(name='estimator', hardware_id='drift_control',
+                              level=DiagnosticStatus.OK)
+    status.message = 'running' if stepper.state is not None else 'no state yet'
+    times = np.asarray(getattr(est, 'step_times', ()), float) * 1e3
+    if times.size:
+        status.values.append(KeyValue(key='step_ms_p50', value=f'{np.median(times):.3f}'))
+        status.values.append(KeyValue(key='step_ms_max', value=f'{times.max():.3f}'))
+    for name, nis in (est.nis_summary() if hasattr(est, 'nis_summary') else {}).items():
+        status.values.append(KeyValue(key=f'nis_mean {name}', value=f'{nis["mean"]:.2f}'))
+    events = getattr(est, 'events', ())
+    if events:
+        status.level = DiagnosticStatus.WARN
+        status.values.append(KeyValue(key='faults', value=str(len(events))))
+        status.message = f'last fault: {events[-1].channel} {events[-1].reason}'
+    if hasattr(est, 'clear_records'):
+        est.clear_records()
+    return status
+
+
+def log_new_events(stepper: FrameStepper, reported: int, logger, epoch: int) -> int:
+    """Log the estimator's fault events after the first ``reported``; returns their count."""
+    events = getattr(stepper.estimator, 'events', ())
+    for e in events[reported:]:
+        logger.warning(f'sensor fault: {e.channel} {e.reason} (t = {e.t + epoch:.3f} s)')
+    return len(events)
 
 
 def main(args=None) -> int:

@@ -1,21 +1,31 @@
-"""NMPC node: vehicle/state + drift/reference -> Nmpc.step -> drift/command, status, diagnostics."""
+"""NMPC node: vehicle/state + drift/reference -> Nmpc.step -> drift/command, status, diagnostics.
+
+``state_source: sensors``: the estimator and the reference selector run in this process as
+library stages before the NMPC, on vehicle/sensors: one DDS hop from the sensor samples to the
+command instead of three (docs/estimator.md has the measurements); the estimated state and the
+reference are published after the command, for the recorder and the view.
+"""
 import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from drift_msgs.msg import DriftCommand, DriftReference, NmpcStatus, VehicleState
+from drift_msgs.msg import DriftCommand, DriftReference, NmpcStatus, SensorSamples, VehicleState
+from nav_msgs.msg import Path as PathMsg
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.time import Time
 
 from drift_control.assembly import MODES, load_setup
+from drift_control.estimator import FrameStepper, build_estimator
 from drift_control.nmpc import LockstepTrigger
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
+from drift_control.nodes.estimator_node import estimator_status, log_new_events
 from drift_control.nodes.spin import run_node
+from drift_control.pacing import PeriodGate
 from drift_control.params import ParamError, config_dir
 REALTIME_REFERENCE_WAIT = 0.005   # trigger: state, wall time [s]
 LOCKSTEP_REFERENCE_WAIT = 1.0
@@ -34,10 +44,16 @@ class NmpcNode(Node):
         overrides = [o for o in self.declare_parameter('set', ['']).value if o]
         mode = self.declare_parameter('control_mode', '').value   # '' = the scenario's, else full
         trigger = self.declare_parameter('trigger', 'timer').value
-        if mode not in ('', *MODES) or trigger not in ('timer', 'state'):
-            raise ParamError(f'nmpc node: control_mode {mode!r} not in {list(MODES)} or trigger '
-                             f"{trigger!r} not in ['timer', 'state']")
-        setup = load_setup(cfg, scenario, vehicle or None, overrides, with_map=False)
+        source = self.declare_parameter('state_source', 'topics').value
+        kind = self.declare_parameter('estimator', 'ekf').value
+        estimator_set = [o for o in self.declare_parameter('estimator_set', ['']).value if o]
+        if mode not in ('', *MODES) or trigger not in ('timer', 'state') \
+                or source not in ('topics', 'sensors'):
+            raise ParamError(f'nmpc node: control_mode {mode!r} not in {list(MODES)}, trigger '
+                             f"{trigger!r} not in ['timer', 'state'] or state_source {source!r} "
+                             "not in ['topics', 'sensors']")
+        setup = load_setup(cfg, scenario, vehicle or None, overrides,
+                           with_map=source == 'sensors')
         params, surface = setup.nmpc, setup.surface
         mode = mode or (setup.scenario.control_mode if setup.scenario else 'full')
         self._nmpc = setup.build_nmpc(MODES[mode])
@@ -46,18 +62,27 @@ class NmpcNode(Node):
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
         self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        self._stepper = None
+        if source == 'sensors':
+            self._in_process(setup, build_estimator(kind, setup.vehicle,
+                                                    setup.config / 'estimator.yaml',
+                                                    estimator_set))
+            trigger = 'sensors'
         # under sim time the simulator waits for us: wait for the reference of this very state
         # (deterministic); in real time at most a few ms, so a late reference never stalls us
-        sim_time = self.get_parameter('use_sim_time').value
+        sim_time = self._sim_time = self.get_parameter('use_sim_time').value
         wait = LOCKSTEP_REFERENCE_WAIT if sim_time else REALTIME_REFERENCE_WAIT
         self._trigger = LockstepTrigger(params.Ts, wait, first_reference=sim_time) \
             if trigger == 'state' else None
         # best effort matches every publisher; the deeper queue keeps each state of a step
         state_qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.BEST_EFFORT) \
             if trigger == 'state' else qos_profile_sensor_data
-        self.create_subscription(VehicleState, 'vehicle/state', self._on_state, state_qos)
-        self.create_subscription(DriftReference, 'drift/reference', self._on_ref, 10)
-        if self._trigger is None:
+        if trigger != 'sensors':   # else vehicle/sensors drive it (_on_samples)
+            self.create_subscription(VehicleState, 'vehicle/state', self._on_state, state_qos)
+            self.create_subscription(DriftReference, 'drift/reference', self._on_ref, 10)
+        if trigger == 'sensors':
+            pass
+        elif self._trigger is None:
             self.create_timer(params.Ts, self._on_tick)   # node clock: honours use_sim_time
         else:   # wall clock: sim time stands still while the simulator waits for us; started
             # by a state that waits for its reference (a polling timer costs the node ~10 % CPU)
@@ -70,6 +95,70 @@ class NmpcNode(Node):
         self.get_logger().info(f'{setup.vehicle_name}, {mode} on {surface.name} '
                                f'(mu {surface.mu:g}), trigger {trigger}, '
                                f'solver {params.solver.method}/{params.solver.qp_solver}')
+
+    def _in_process(self, setup, estimator):
+        """Estimator and selector in this process: vehicle/sensors in; the estimated state, the
+        reference and the path out, as their own nodes would publish them."""
+        self._stepper = FrameStepper(estimator)
+        self._selector = setup.build_selector()
+        self._gate = PeriodGate(setup.nmpc.Ts)   # once per control period of state time
+        self._epoch = None
+        self._reported = 0
+        self._answer = None   # the command and reference of the last solved frame
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
+        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_publisher(PathMsg, 'drift/path', latched).publish(
+            convert.path_to_msg(setup.path, self.get_clock().now()))
+        self.create_subscription(SensorSamples, 'vehicle/sensors', self._on_samples,
+                                 QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE))
+
+    def _on_samples(self, msg):
+        """One frame: the estimator's step; once per period the selector and the NMPC on its
+        state, the command out first."""
+        if self._epoch is None:
+            self._epoch = msg.header.stamp.sec
+        frame = convert.decode(lambda m: convert.sensor_samples_from_msg(m, self._epoch), msg,
+                               self.get_logger())
+        if frame is None:
+            return
+        t, samples = frame
+        repeated = t == self._stepper.last_now
+        state = self._stepper.step(samples, t)
+        self._reported = log_new_events(self._stepper, self._reported, self.get_logger(),
+                                        self._epoch)
+        if state is None:
+            return
+        if repeated:   # offered again (a lock-step start): answer again, for a late joiner
+            if self._answer is not None and self._gate.last == t:
+                command, ref = self._answer
+                if ref is not None:
+                    self._ref_pub.publish(ref)
+                self._cmd_pub.publish(command)
+            return
+        now = max(round(self._clock_s() - self._epoch, 9), t)   # to the ns, as the stamps
+        if not self._gate.due(t, now):
+            self._state_pub.publish(convert.state_to_msg(state, msg.header.stamp))
+            return
+        self._gate.fired(t)
+        self._state, self._ref = state, self._selector.select(state)
+        result = self._nmpc.step(state, self._ref, now)
+        stamp = convert.time_to_msg(now + self._epoch) if now > t else msg.header.stamp
+        command = convert.command_to_msg(result.command, stamp)
+        if not self._sim_time:   # real time: the command out before anything else is built
+            self._cmd_pub.publish(command)
+        ref = convert.reference_to_msg(self._ref, msg.header.stamp) if self._ref else None
+        if ref is not None:
+            self._ref_pub.publish(ref)
+        if self._sim_time:   # lock-step: the simulator steps once it has both, reference first
+            self._cmd_pub.publish(command)
+        self._answer = (command, ref)
+        self._state_pub.publish(convert.state_to_msg(state, msg.header.stamp))
+        self._status_pub.publish(convert.status_to_msg(result, stamp))
+        self._last = result
+        self._nmpc.prepare()   # the next cycle's linearisation, while no frame waits
 
     def _on_state(self, msg):
         state = convert.decode(convert.state_from_msg, msg, self.get_logger())
@@ -113,6 +202,10 @@ class NmpcNode(Node):
         self._nmpc.prepare()   # the next cycle's linearisation, while no state waits
 
     def _publish_diagnostics(self):
+        if self._stepper is not None:
+            msg = DiagnosticArray(status=[estimator_status(self._stepper)])
+            msg.header.stamp = self.get_clock().now().to_msg()
+            self._diag_pub.publish(msg)
         r = self._last
         status = DiagnosticStatus(name='nmpc', hardware_id='drift_control')
         status.level = LEVEL[r.status] if r else DiagnosticStatus.STALE

@@ -134,7 +134,7 @@ class SimNode(Node):
             self._publish(self._sim.state)
         tick = self._sim.dt if self._mode == 'realtime' else 0.005
         self.create_timer(tick, self._on_tick)
-        if self._can is not None:
+        if self._can is not None or (self._sensors is not None and self._mode == 'realtime'):
             raise_real_time()   # it stands in for a car: its 10 ms cycle must not wait
         lock_parameters(self)   # every parameter is read once, at start
         self.get_logger().info(f'scenario {loaded.scenario.name} ({self._mode}), vehicle '
