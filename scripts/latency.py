@@ -6,8 +6,9 @@
 Each command is matched to the newest state recorded before it (with the estimator stage: the
 newest frame of sensor samples); prints p50, p99 and max over the commands after the first
 ``--skip`` seconds, then the same hop by hop along each command's stamp (sensors -> state ->
-reference -> command). A lock-step bag (log times in sim time) is refused. The bag is only
-read; an MDF4 export is read as well.
+reference -> command). ``--publish-times``: the same from the publish times the recorder keeps
+(each message's DDS source timestamp), without the recorder's own delays. A lock-step bag (log
+times in sim time) is refused. The bag is only read; an MDF4 export is read as well.
 """
 import argparse
 import json
@@ -20,6 +21,9 @@ def main(argv=None) -> int:
     parser.add_argument('bag', type=Path, help='rosbag2 directory or MDF4 export')
     parser.add_argument('--skip', type=float, default=1.0, help='start-up left out [s]')
     parser.add_argument('--json', action='store_true', help='print the numbers as JSON')
+    parser.add_argument('--publish-times', action='store_true',
+                        help='from the publishers\' clocks at publish, not the recorder\'s '
+                             'log times (bags only)')
     args = parser.parse_args(argv)
 
     from drift_tools.bag_salvage import BagDamagedError
@@ -35,9 +39,16 @@ def main(argv=None) -> int:
                   f'it has no latency to measure (record one with --clock realtime)',
                   file=sys.stderr)
             return 2
-        messages = read_log(args.bag)
-        result = latency(messages, args.skip)
-        hops = stages(messages, args.skip) if not args.bag.is_file() else {}
+        when = 't'
+        if args.publish_times:
+            if args.bag.is_file():
+                raise ValueError('--publish-times: an MDF4 export has no publish times')
+            from drift_tools.bag import read_bag
+            messages, when = read_bag(args.bag, backend='mcap'), 'pt'
+        else:
+            messages = read_log(args.bag)
+        result = latency(messages, args.skip, when)
+        hops = stages(messages, args.skip, when) if not args.bag.is_file() else {}
     except (BagDamagedError, OSError, ValueError) as err:
         print(f'latency: {args.bag}: {err}', file=sys.stderr)
         return 2

@@ -9,6 +9,7 @@ rewritten; ``scripts/bag.py recover`` writes a repaired copy.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ class BagMessage:
 
     t: float          # receive (log) time [s since the epoch]
     msg: object       # decoded message; fields as attributes (``msg.header.stamp.sec``)
+    pt: float = math.nan   # publish time [s since the epoch] (backend 'mcap' and salvage)
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,8 @@ def _read_whole(bag_dir, wanted, backend: str) -> dict[str, list[BagMessage]]:
                         out.setdefault(channel.topic, [])
                 for _, channel, message, decoded in reader.iter_decoded_messages(
                         topics=None if wanted is None else sorted(wanted)):
-                    out[channel.topic].append(BagMessage(message.log_time * 1e-9, decoded))
+                    out[channel.topic].append(BagMessage(message.log_time * 1e-9, decoded,
+                                                         message.publish_time * 1e-9))
         for msgs in out.values():
             msgs.sort(key=lambda m: m.t)
     return out
@@ -153,5 +156,6 @@ def _read_salvaged(bag_dir, wanted) -> dict[str, list[BagMessage]]:
         decode = decoders.get(m.channel_id)
         if decode is not None:
             out[scan.channels[m.channel_id].topic].append(BagMessage(m.log_time * 1e-9,
-                                                                     decode(m.data)))
+                                                                     decode(m.data),
+                                                                     m.publish_time * 1e-9))
     return out

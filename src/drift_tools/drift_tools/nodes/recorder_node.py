@@ -111,8 +111,8 @@ class RecorderNode(Node):
             self._subs[topic] = None
             return
         sub = self.create_subscription(
-            cls, topic, lambda data, t=topic, m=msgtype: self._on_message(t, m, data), qos,
-            raw=True)
+            cls, topic, lambda data, info, t=topic, m=msgtype: self._on_message(t, m, data, info),
+            qos, raw=True)
         self._subs[topic] = (sub, msgtype, qos)
 
     def _declare_live(self, name: str, default: float, description: str) -> float:
@@ -136,7 +136,7 @@ class RecorderNode(Node):
             self._warned_at = None       # a new threshold: say at once where we stand
         return apply
 
-    def _on_message(self, topic, msgtype, data):
+    def _on_message(self, topic, msgtype, data, info=None):
         if self.failure:
             self._dropped += 1
             return
@@ -147,7 +147,10 @@ class RecorderNode(Node):
                     topic, msgtype, reliable=qos.reliability == ReliabilityPolicy.RELIABLE,
                     latched=qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
                 self.get_logger().info(f'recording {topic} [{msgtype}]')
-            self._writer.write(topic, data, self.get_clock().now().nanoseconds)
+            # publish time: the publisher's wall clock at publish (DDS source timestamp), so a
+            # path's latency can be read without this node's own delays (scripts/latency.py)
+            self._writer.write(topic, data, self.get_clock().now().nanoseconds,
+                               (info or {}).get('source_timestamp') or None)
         except OSError as err:
             self._stop_recording(f'write failed: {err.strerror or err}')
 
