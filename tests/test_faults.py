@@ -69,6 +69,17 @@ def test_an_impossible_but_finite_state_gives_the_fallback_in_the_same_cycle(nmp
     assert res.status == NmpcStatus.OK, res.message
 
 
+def test_a_fallback_in_a_torque_burst_ramps_from_what_the_wheels_have(nmpc, vp, eq30):
+    """A trip while the last request is a 6000 Nm burst the lagging powertrain has delivered
+    1000 Nm of: the ramp to zero starts at 1000 Nm, never delivering the rest."""
+    now = _engaged(nmpc, eq30)
+    nmpc._last = dataclasses.replace(nmpc._last, drive_torque=6000.0)
+    nmpc._T_act = 1000.0
+    res = nmpc.step(_state(eq30, now, 99, V=1000.0), Reference(now, eq30, Direction.LEFT), now)
+    _assert_safe(res, vp, 'implausible vehicle state')
+    assert 1000.0 - 3000.0 * TS - 1e-6 <= res.command.drive_torque < 1000.0
+
+
 def test_a_frozen_sensor_is_noticed(nmpc, vp, eq30):
     now = _engaged(nmpc, eq30)
     frozen = _state(eq30, now, 7)

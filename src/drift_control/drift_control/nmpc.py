@@ -380,8 +380,11 @@ class Nmpc:
     def _fallback_command(self, ref: Reference | None, now: float) -> Command:
         """Torque ramped toward zero, steering rate-limited toward the reference steering.
 
-        In TORQUE_ONLY mode the driver steers: the fallback only ramps the torque down and keeps
-        the mode, so no actuator takes the steering from the driver.
+        The ramp starts from the last command or from the torque the powertrain has delivered
+        of it (the modelled lag), whichever is nearer zero: a trip in the middle of a 6000 Nm
+        request the wheels have not yet seen must not deliver it. In TORQUE_ONLY mode the
+        driver steers: the fallback only ramps the torque down and keeps the mode, so no
+        actuator takes the steering from the driver.
         """
         Ts, p = self.params.Ts, self.params
         last = self._last
@@ -389,8 +392,10 @@ class Nmpc:
         target = self._clip_delta(target)
         step = _clip(target - last.delta, -p.fallback_delta_rate * Ts, p.fallback_delta_rate * Ts)
         T_step = p.fallback_torque_rate * Ts
-        torque = _clip(last.drive_torque, -T_step, T_step)   # distance left to zero
-        torque = last.drive_torque - torque
+        start = last.drive_torque
+        if math.isfinite(self._T_act) and abs(self._T_act) < abs(start):
+            start = self._T_act
+        torque = start - _clip(start, -T_step, T_step)   # one step nearer zero
         if self.mode == Mode.TORQUE_ONLY:
             return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
         return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
