@@ -16,6 +16,7 @@ every row has run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -31,6 +32,9 @@ from drift_sim.sweep import (LOST_BETA_RMS_DEG, LOST_E_Y_M, ROBUST, ROBUST_HIGH_
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = '<!-- results:start -->', '<!-- results:end -->'
+
+# the first seed of every row once more through the car's sensors and the state estimator
+ESTIMATED = {'sensors': 'realistic', 'estimator': 'ekf'}
 
 # (row label, scenario, overrides, the paper's figure for the same claim); the robustness
 # perturbations are drift_sim.sweep's
@@ -76,17 +80,33 @@ def _held(summary) -> str:
     return f"{summary['held']}/{n}{spread}{paper}"
 
 
+def _torque(m) -> str:
+    """``std / mean change`` of the torque request [Nm], '-' without a steady window."""
+    if m.get('torque_std_Nm') is None:
+        return '-'
+    return f"{m['torque_std_Nm']:.0f} / {m['torque_change_Nm']:.0f}"
+
+
+def _estimated(m) -> str:
+    """The estimated run's torque columns and sideslip error, or its failure."""
+    if m is None or 'error' in m:
+        return f"error: {m['error']}" if m else '-'
+    spun = '; spun' if m.get('spun') else ''
+    return f"{_torque(m)}; {_fmt(m.get('beta_rms_error_deg'), '.2f')}{spun}"
+
+
 def table(rows, seeds) -> str:
-    """``rows``: (run, first seed's metrics, sweep summary) per row."""
+    """``rows``: (run, first seed's metrics, sweep summary, the estimated run's metrics)."""
     seed_text = f'{seeds[0]}-{seeds[-1]}' if len(seeds) > 1 else str(seeds[0])
     lines = [f'| scenario | spun | beta RMS err [deg] | max abs e_y after entry / in steady parts [m] | '
              f'laps held | left-right flip [s] | NMPC vs driver steer max [deg] | safe stop | '
-             f'solve p50 / p99 [ms] | RTF | held, seeds {seed_text} (max abs e_y min / median / '
-             f'max [m]) | paper |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|']
-    for (label, _, _, paper), m, summary in rows:
+             f'solve p50 / p99 [ms] | RTF | torque std / change [Nm] | sensors + EKF: torque std '
+             f'/ change [Nm]; beta RMS err [deg] | held, seeds {seed_text} (max abs e_y min / '
+             f'median / max [m]) | paper |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for (label, _, _, paper), m, summary, est in rows:
         if 'error' in m:
-            lines.append(f'| {label} | error: {m["error"]} | | | | | | | | | | {paper} |')
+            lines.append(f'| {label} | error: {m["error"]} | | | | | | | | | | | | {paper} |')
             continue
         spun = 'yes (%.1f s)' % m['spin_time_s'] if m.get('spun') else 'no'
         safe = m.get('supervisor_trip_s')
@@ -98,7 +118,8 @@ def table(rows, seeds) -> str:
             f"{_fmt(m.get('steer_proposal_diff_max_deg'), '.1f')} | "
             f"{'at %.1f s' % safe if safe is not None else '-'} | "
             f"{_fmt(m.get('solve_time_ms_p50'), '.2f')} / {_fmt(m.get('solve_time_ms_p99'), '.2f')} | "
-            f"{_fmt(m.get('real_time_factor'), '.1f')} | {_held(summary)} | {paper} |")
+            f"{_fmt(m.get('real_time_factor'), '.1f')} | {_torque(m)} | {_estimated(est)} | "
+            f"{_held(summary)} | {paper} |")
     return '\n'.join(lines)
 
 
@@ -143,15 +164,17 @@ def main(argv=None) -> int:
     except ParamError as err:
         print(f'results_table: {err}', file=sys.stderr)
         return 2
+    estimated = {label: dataclasses.replace(mine[0], **ESTIMATED) for label, mine in jobs.items()}
     labels = {job.key: label for label, mine in jobs.items() for job in mine}
-    width = max(len(label) for label in jobs)
+    labels.update({job.key: f'{label} +EKF' for label, job in estimated.items()})
+    width = max(len(label) for label in labels.values())
 
     def show(row):
         from tqdm import tqdm   # above the progress bar
         tqdm.write(format_run(labels[row['key']], row['seed'], row['metrics'], row['wall_s'],
                               width))
 
-    everything = [job for mine in jobs.values() for job in mine]
+    everything = [job for mine in jobs.values() for job in mine] + list(estimated.values())
     fresh = sum(1 for job in everything if job.key not in store)
     t0 = time.perf_counter()
     try:
@@ -170,7 +193,8 @@ def main(argv=None) -> int:
     rows, all_metrics = [], {}
     for run in runs:
         mine = [(seed, m) for label, seed, m in results if label == run[0]]
-        rows.append((run, mine[0][1], summarise(mine)))
+        rows.append((run, mine[0][1], summarise(mine),
+                     (store.get(estimated[run[0]].key) or {}).get('metrics')))
         all_metrics[run[0]] = {str(seed): m for seed, m in mine}
     measured = f'{len(results)} runs in {wall:.0f} s wall on {args.jobs} process(es)'
     if fresh < len(results):
@@ -184,7 +208,10 @@ def main(argv=None) -> int:
             f'nor lost the drift (sideslip RMS error > {LOST_BETA_RMS_DEG:g} deg or lateral '
             f'error > {LOST_E_Y_M:g} m). Robustness rows: {", ".join(ROBUST)} (mass +10 %, torque '
             f'delay +20 ms) with the friction field of every row, then also surface.mu=0.95 / '
-            f'1.05 (mu -5 % / +5 %).\n')
+            f'1.05 (mu -5 % / +5 %). Torque: the NMPC\'s torque request, its std and mean '
+            f'change per 20 ms cycle in the steady parts (issue 22), seed {seeds[0]}; "sensors + '
+            f'EKF": seed {seeds[0]} once more through the realistic sensors and the state '
+            f'estimator (docs/estimator.md).\n')
     if args.json:
         Path(args.json).write_text(json.dumps(all_metrics, indent=2, default=str))
     if partial:   # a subset must not replace the whole table

@@ -82,3 +82,25 @@ def test_a_bad_scenario_is_an_error_row_and_a_failing_exit():
     sweep = load_script('seed_sweep')
     rc = sweep.main(['--scenario', 'no_such_scenario', '--seeds', '0', '--jobs', '1'])
     assert rc == 1
+
+
+def test_torque_smoothness_per_control_period_in_the_steady_windows():
+    import numpy as np
+    from drift_sim.metrics import torque_smoothness
+    t = np.round(np.arange(0.0, 10.0, 0.01), 9)
+    T = np.where((np.arange(len(t)) // 2) % 2 == 0, 1000.0, 1100.0)   # +-50 Nm every 20 ms
+    std, change = torque_smoothness(t, T, [(2.0, 4.0), (6.0, 8.0)])
+    assert std == pytest.approx(50.0) and change == pytest.approx(100.0)
+    T[(t >= 4.0) & (t < 6.0)] = 5000.0   # outside the windows: not counted
+    assert torque_smoothness(t, T, [(2.0, 4.0), (6.0, 8.0)]) == pytest.approx((std, change))
+    assert all(np.isnan(torque_smoothness(t, T, [])))
+
+
+def test_a_job_with_sensors_has_its_own_key_and_the_others_keep_theirs():
+    from drift_sim.campaign import Job
+    plain = Job('steady_dry', 'm3_competition', 0)
+    assert plain.key == 'c601b50f0bf2eba2'   # the key before jobs had sensors: stores resume
+    sensed = Job('steady_dry', 'm3_competition', 0, sensors='realistic', estimator='ekf')
+    assert sensed.key != plain.key and sensed.row()['sensors'] == 'realistic'
+    assert '--sensors realistic --estimator ekf' in sensed.replay_command()
+    assert 'sensors' not in plain.row()

@@ -39,13 +39,18 @@ class Job:
     plant_seed: int | None = None     # the population's seed (with ``draw``)
     values: dict = field(default_factory=dict, compare=False)   # drawn u per parameter
     config: str | None = None         # config directory; None: the checkout's
+    sensors: str = ''                 # the car's sensor units ('realistic'); '': plant's noise
+    estimator: str = ''               # with sensors: 'ekf' or 'none'
 
     @property
     def key(self) -> str:
-        """Hash of everything that decides the run (the drawn values are in the overrides)."""
-        text = json.dumps([self.scenario, self.vehicle, self.seed, list(self.overrides),
-                           self.draw, self.plant_seed, self.config])
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+        """Hash of everything that decides the run (the drawn values are in the overrides);
+        the sensors only when set, so that the keys of runs without them stay as they were."""
+        fields = [self.scenario, self.vehicle, self.seed, list(self.overrides), self.draw,
+                  self.plant_seed, self.config]
+        if self.sensors:
+            fields += [self.sensors, self.estimator]
+        return hashlib.sha256(json.dumps(fields).encode()).hexdigest()[:16]
 
     def replay_command(self) -> str:
         """The ``scripts/simulate.py`` command line that runs this job alone."""
@@ -55,6 +60,8 @@ class Job:
             words += ['--set', item]
         if self.config:
             words += ['--config-dir', self.config]
+        if self.sensors:
+            words += ['--sensors', self.sensors, '--estimator', self.estimator or 'none']
         return ' '.join(shlex.quote(w) for w in words)
 
     def row(self) -> dict:
@@ -62,7 +69,9 @@ class Job:
         return {'key': self.key, 'scenario': self.scenario, 'vehicle': self.vehicle,
                 'seed': self.seed, 'draw': self.draw, 'plant_seed': self.plant_seed,
                 'overrides': list(self.overrides), 'values': dict(self.values),
-                'config': self.config, 'replay': self.replay_command()}
+                'config': self.config, 'replay': self.replay_command(),
+                **({'sensors': self.sensors, 'estimator': self.estimator} if self.sensors
+                   else {})}
 
 
 def scenario_vehicle(scenario: str, overrides=(), config=None) -> str:
@@ -121,7 +130,7 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
 def run_job(job: Job) -> dict:
     """Run one job in this process: its store row (``outcome`` is drift_sim.sweep's)."""
     metrics, wall = run_seed(job.scenario, job.overrides, job.seed, job.config,
-                             vehicle=job.vehicle)
+                             vehicle=job.vehicle, sensors=job.sensors, estimator=job.estimator)
     return {**job.row(), 'outcome': outcome(metrics), 'wall_s': wall,
             'host': socket.gethostname(), 'finished': time.time(), 'metrics': metrics}
 

@@ -158,6 +158,35 @@ def steer_proposal_diff(t, delta_proposed, delta_applied, windows,
     }
 
 
+def steady_windows(spec_metrics, t, beta_ref) -> list:
+    """A scenario's steady windows (``metrics:`` of its spec): its fixed ones, or with
+    ``settle`` the settled parts of the reference (``settled_windows``), as the closed loop
+    judges them."""
+    if spec_metrics.settle > 0.0:
+        return settled_windows(t, beta_ref, spec_metrics.settle,
+                               math.radians(spec_metrics.drift_beta_deg))
+    return [list(w) for w in spec_metrics.steady]
+
+
+def torque_smoothness(t, T_cmd, windows, period: float = 0.02) -> tuple[float, float]:
+    """Std and mean |change| per control ``period`` [s] of the torque request in the windows
+    [Nm]; NaN without a window. ``T_cmd``: the request held at each sample of ``t``."""
+    t, T_cmd = np.asarray(t, dtype=float), np.asarray(T_cmd, dtype=float)
+    if len(t) < 2:
+        return math.nan, math.nan
+    step = max(1, int(round(period / (t[1] - t[0]))))
+    values, changes = [], []
+    for start, end in windows:
+        T = T_cmd[(t >= start) & (t < end)][::step]
+        T = T[np.isfinite(T)]
+        values.append(T)
+        changes.append(np.abs(np.diff(T)))
+    values, changes = np.concatenate(values or [[]]), np.concatenate(changes or [[]])
+    if not changes.size:
+        return math.nan, math.nan
+    return float(np.std(values)), float(np.mean(changes))
+
+
 def percentiles(values, qs=(50, 99)) -> dict:
     """``{'p50': ..., 'p99': ...}`` of ``values``; NaN for no samples."""
     values = np.asarray(values, dtype=float)

@@ -51,27 +51,43 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def run_seed(scenario: str, overrides=(), seed: int | None = None,
-             config: str | None = None, vehicle: str | None = None) -> tuple[dict, float]:
+             config: str | None = None, vehicle: str | None = None, sensors: str = '',
+             estimator: str = '') -> tuple[dict, float]:
     """One ``run_closed_loop`` for a sweep: (metrics, wall seconds).
 
     An exception becomes ``{'error': ...}`` (one broken run must not lose the others) and NaN
     becomes None (JSON has none). The metrics gain ``event_t_s`` and ``event_s_m``: when and
     where on the path the car spun, the supervisor tripped, or else the lateral error after
-    the entry was largest. The supervisor's trip messages are silenced: the outcome says them.
-    Meant for worker processes; it imports the closed loop on first use.
+    the entry was largest; and ``torque_std_Nm``, ``torque_change_Nm``: the torque request's
+    std and mean change per control period in the steady windows. The supervisor's trip
+    messages are silenced: the outcome says them. ``sensors``, ``estimator``: as
+    ``run_closed_loop``'s ('': the plant's measurement model). Meant for worker processes; it
+    imports the closed loop on first use.
     """
     from drift_sim.closed_loop import run_closed_loop
     logging.disable(logging.ERROR)
     t0 = time.perf_counter()
     try:
+        extra = {'sensors': sensors, 'estimator': estimator or 'none'} if sensors else {}
         metrics, log = run_closed_loop(scenario, overrides, seed=seed, config=config,
-                                       vehicle=vehicle)
+                                       vehicle=vehicle, **extra)
         metrics.update(_event(metrics, log))
+        metrics.update(_torque(scenario, overrides, config, vehicle, log))
     except Exception as err:   # noqa: BLE001
         metrics = {'error': f'{type(err).__name__}: {err}'}
     metrics = {k: None if isinstance(v, float) and not math.isfinite(v) else v
                for k, v in metrics.items()}
     return metrics, time.perf_counter() - t0
+
+
+def _torque(scenario, overrides, config, vehicle, log) -> dict:
+    """The torque request's smoothness in the scenario's steady windows [Nm]."""
+    from drift_control.scenario import load_scenario_spec
+    from drift_sim.metrics import steady_windows, torque_smoothness
+    spec = load_scenario_spec(scenario, overrides, config, vehicle=vehicle)
+    windows = steady_windows(spec.metrics, log['t'], log['beta_ref'])
+    std, change = torque_smoothness(log['t'], log['T_cmd'], windows)
+    return {'torque_std_Nm': std, 'torque_change_Nm': change}
 
 
 def _event(metrics: dict, log: dict) -> dict:
