@@ -114,7 +114,7 @@ def test_the_lockstep_graph_with_sensors_is_the_one_process_loop_bit_for_bit(tmp
     proc = subprocess.run(
         [sys.executable, str(REPO / 'scripts' / 'run_stack.py'), '--scenario', 'steady_dry',
          '--clock', 'lockstep', '--sim-duration', '3', '--duration', '80', '--sensors',
-         'realistic', '--bag', str(tmp_path / 'bag'), '--domain-id', '123', '--no-summary'],
+         'realistic', '--bag', str(tmp_path / 'bag'), '--domain-id', '131', '--no-summary'],
         env={**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'},
         capture_output=True, text=True, timeout=90)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
