@@ -151,3 +151,22 @@ def test_build_estimator_refuses_an_unknown_kind():
     assert isinstance(build_estimator('none', VEHICLE, None), LatestSamples)
     with pytest.raises(ParamError, match='ukf'):
         build_estimator('ukf', VEHICLE, config_dir() / 'estimator.yaml')
+
+
+@pytest.mark.parametrize('value, failure', [(1e308, 'non-finite state'),
+                                            (1e30, 'ValueError: math domain error')])
+def test_frame_stepper_starts_over_after_absurd_samples(value, failure):
+    """Finite but absurd IMU samples overflow the integration (or a math call fails): the
+    estimator starts over from the next samples instead of failing or carrying infinity."""
+    from drift_control.estimator import FrameStepper
+    sensors = Sensors(SENSORS, DT, 0)
+    stepper = FrameStepper(Estimator(VEHICLE, PARAMS))
+    stepper.step(sensors.reset(circle(0.0)), 0.0)
+    with np.errstate(over='ignore', invalid='ignore'):
+        for k in range(1, 80):
+            frame = sensors.step(circle(k * DT))
+            if k == 20:
+                frame = [s._replace(values=(value,) * 3) if s.unit == 'imu' else s for s in frame]
+            state = stepper.step(frame, round(k * DT, 9))
+    assert stepper.restarts == 1 and stepper.failure.startswith(failure), stepper.failure
+    assert state.V == pytest.approx(9.0, abs=0.1) and abs(state.r - 0.6) < 0.05

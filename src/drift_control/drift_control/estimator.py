@@ -607,25 +607,40 @@ class FrameStepper:
     """An estimator fed frame by frame as they arrive over a network: one step per frame of
     samples that arrived together. A frame offered again (the same arrival time: a simulator
     waiting for its controller repeats its first one) gets the same state without a step; a
-    clock that steps back (a restarted simulator) starts the estimator over."""
+    clock that steps back (a restarted simulator) starts the estimator over, and so does a
+    step that fails or leaves a non-finite state (absurd samples the IMU integrates: the
+    filter would never recover), named in ``failure``."""
 
     def __init__(self, estimator):
         self.estimator = estimator
         self.last_now = -math.inf
         self.state: VehicleState | None = None
         self.restarts = 0
+        self.failure = ''   # why it last started over, '' if it never did for a failure
 
     def step(self, samples, now: float) -> VehicleState | None:
         """The state at ``now`` [s] after ``samples``; None until the estimator has one."""
         if now == self.last_now:
             return self.state
         if now < self.last_now:
-            self.estimator.reset()
-            self.restarts += 1
-            self.state = None
+            self._restart('')
         self.last_now = now
-        self.state = self.estimator.step(samples, now) or self.state
+        try:
+            state = self.estimator.step(samples, now)
+        except (ValueError, ArithmeticError) as err:
+            return self._restart(f'{type(err).__name__}: {err} at t = {now:.3f} s')
+        if state is not None and not all(math.isfinite(v) for v in (
+                state.V, state.beta, state.r, state.x, state.y, state.yaw)):
+            return self._restart(f'non-finite state at t = {now:.3f} s')
+        self.state = state or self.state
         return self.state
+
+    def _restart(self, failure: str) -> None:
+        self.estimator.reset()
+        self.restarts += 1
+        self.state = None
+        if failure:
+            self.failure = failure
 
 
 __all__ = ['CHI2_1_95', 'E', 'ESTIMATORS', 'Estimator', 'EstimatorParams', 'FIELDS', 'FaultEvent',

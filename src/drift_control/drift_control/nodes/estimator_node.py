@@ -31,7 +31,7 @@ class EstimatorNode(Node):
         self._stepper = FrameStepper(build_estimator(
             kind, setup.vehicle, setup.config / 'estimator.yaml', estimator_set))
         self._epoch = None      # whole seconds taken off every stamp (wall-clock stamps)
-        self._reported = 0      # fault events logged so far
+        self._log = StepperLog(self.get_logger())
         reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)   # every frame
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state',
                                                 QoSProfile(depth=10,
@@ -52,8 +52,7 @@ class EstimatorNode(Node):
             return
         now, samples = frame
         state = self._stepper.step(samples, now)
-        self._reported = log_new_events(self._stepper, self._reported, self.get_logger(),
-                                        self._epoch)
+        self._log(self._stepper, self._epoch)
         if state is not None:   # stamped with the frame's own arrival stamp, to the nanosecond
             self._state_pub.publish(convert.state_to_msg(state, msg.header.stamp))
 
@@ -86,12 +85,22 @@ def estimator_status(stepper: FrameStepper) -> DiagnosticStatus:
     return status
 
 
-def log_new_events(stepper: FrameStepper, reported: int, logger, epoch: int) -> int:
-    """Log the estimator's fault events after the first ``reported``; returns their count."""
-    events = getattr(stepper.estimator, 'events', ())
-    for e in events[reported:]:
-        logger.warning(f'sensor fault: {e.channel} {e.reason} (t = {e.t + epoch:.3f} s)')
-    return len(events)
+class StepperLog:
+    """Logs the estimator's new fault events and each time it started over, once each."""
+
+    def __init__(self, logger):
+        self.logger, self.events, self.restarts = logger, 0, 0
+
+    def __call__(self, stepper: FrameStepper, epoch: int) -> None:
+        events = getattr(stepper.estimator, 'events', ())
+        for e in events[self.events:]:
+            self.logger.warning(f'sensor fault: {e.channel} {e.reason} (t = {e.t + epoch:.3f} s)')
+        self.events = len(events)
+        if stepper.restarts != self.restarts:
+            self.restarts = stepper.restarts
+            self.events = 0   # a new estimator: its own events
+            self.logger.warning('estimator started over: '
+                                + (stepper.failure or 'the clock stepped back'))
 
 
 def main(args=None) -> int:

@@ -23,7 +23,7 @@ from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
-from drift_control.nodes.estimator_node import estimator_status, log_new_events
+from drift_control.nodes.estimator_node import StepperLog, estimator_status
 from drift_control.nodes.spin import run_node
 from drift_control.pacing import PeriodGate
 from drift_control.params import ParamError, config_dir
@@ -103,7 +103,7 @@ class NmpcNode(Node):
         self._selector = setup.build_selector()
         self._gate = PeriodGate(setup.nmpc.Ts)   # once per control period of state time
         self._epoch = None
-        self._reported = 0
+        self._log = StepperLog(self.get_logger())
         self._answer = None   # the command and reference of the last solved frame
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
@@ -127,8 +127,7 @@ class NmpcNode(Node):
         t, samples = frame
         repeated = t == self._stepper.last_now
         state = self._stepper.step(samples, t)
-        self._reported = log_new_events(self._stepper, self._reported, self.get_logger(),
-                                        self._epoch)
+        self._log(self._stepper, self._epoch)
         if state is None:
             return
         if repeated:   # offered again (a lock-step start): answer again, for a late joiner
