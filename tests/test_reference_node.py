@@ -52,8 +52,9 @@ def test_node_exits_non_zero_without_a_map(env, tmp_path):
     assert 'map' in out.stderr.lower(), out.stderr
 
 
-def _drive_node(cmd, env):
-    """Start the node, feed it 2 s of a car 1 m outside the 15 m circle, collect its output."""
+def _drive_node(cmd, env, beta=-0.5):
+    """Start the node, feed it 2 s of a car 1 m outside the 15 m circle at sideslip ``beta``
+    [rad], collect its output."""
     import rclpy
     from drift_msgs.msg import DriftReference, VehicleState
     from nav_msgs.msg import Path as PathMsg
@@ -76,8 +77,8 @@ def _drive_node(cmd, env):
         R, V = 15.0, 10.0
         for k in range(100):
             theta = V * 0.02 * k / R
-            m = VehicleState(v=V, beta=-0.5, r=V / R, x=16 * math.sin(theta),
-                             y=R - 16 * math.cos(theta), yaw=theta + 0.5, validity=2047)
+            m = VehicleState(v=V, beta=beta, r=V / R, x=16 * math.sin(theta),
+                             y=R - 16 * math.cos(theta), yaw=theta - beta, validity=2047)
             m.header.stamp.sec, m.header.stamp.nanosec = divmod(20_000_000 * k, 1_000_000_000)
             pub.publish(m)
             end = time.monotonic() + 0.02
@@ -108,8 +109,9 @@ def test_node_publishes_references_and_the_path(env):
 
 
 def test_node_with_the_real_map(env):
+    # a car in grip (a slide beyond catch_beta would be caught: test_reference_selector)
     refs = _drive_node([sys.executable, '-m', 'drift_control.nodes.reference_node', '--ros-args',
-                        '-p', f'path_file:={CIRCLE}'], env)
+                        '-p', f'path_file:={CIRCLE}'], env, beta=-0.03)
     last = refs[-1]
     assert len(last.horizon) > 1
     assert last.s < 20.0, 'still in the grip entry of circle_left_15 (grip_until 20 m)'
