@@ -374,6 +374,7 @@ class ReferenceSelector:
                 out.append((_blend(left, right, w), direction, c_l or c_r))
         return out
 
+
 def _speed_rise(stages: tuple[Equilibrium, ...], cap: float,
                 step: float) -> tuple[Equilibrium, ...]:
     """The stages with their speed rising at most ``step`` per stage from at most ``cap`` [m/s].
