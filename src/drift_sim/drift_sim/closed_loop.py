@@ -214,8 +214,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
 
     state = sim.reset()
     command, ref = None, None
-    log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'e_y', 's', 'mu',
-                           'beta_ref',
+    log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'omega_F', 'omega_R',
+                           'e_y', 's', 'mu', 'beta_ref',
                            'beta_des', 'delta_cmd', 'delta_plan', 'T_cmd')}
     if sensors is not None:   # what the controller saw, next to the truth
         log.update(beta_seen=[], r_seen=[], V_seen=[])
@@ -238,7 +238,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
         st = tr.state
         for key, value in (('t', tr.t), ('x', st.x), ('y', st.y), ('V', st.V),
                            ('beta', st.beta), ('r', st.r),
-                           ('delta', st.delta), ('T', st.drive_torque), ('e_y', tr.e_y),
+                           ('delta', st.delta), ('T', st.drive_torque),
+                           ('omega_F', st.omega_F), ('omega_R', st.omega_R),
+                           ('e_y', tr.e_y),
                            ('s', tr.s),
                            ('mu', tr.mu), ('beta_des', tr.beta_des),
                            ('beta_ref', ref.target.beta if ref is not None else math.nan),
