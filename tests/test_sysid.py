@@ -160,7 +160,8 @@ def test_the_manoeuvre_files_load_and_a_bad_key_is_named(tmp_path):
     for name in ('sysid', 'sysid_wet'):
         prog = load_manoeuvre(name)
         assert 170.0 <= prog.duration <= 185.0
-        assert {s.kind for s in prog.segments} == {'circle', 'steps', 'sweep', 'burst'}
+        assert {'circle', 'steps', 'sweep', 'burst'} <= {s.kind for s in prog.segments}
+    assert 'drift' in {s.kind for s in load_manoeuvre('sysid').segments}
     bad = tmp_path / 'bad.yaml'
     bad.write_text('segments:\n  - {kind: circle, duration: 5.0, steer_deg: 8.0, speed: [6.0], '
                    'on: 1.0}\n')
@@ -182,6 +183,28 @@ def test_a_burst_slides_past_the_grip_limit_and_regrips(prior):
     assert beta.max() > 12.0            # well past the rear's ~7 deg peak slip
     assert beta.max() < 60.0            # caught, not spun
     assert beta[-100:].max() < 6.0      # regripped at the end of each cycle
+
+
+def test_a_drift_segment_holds_its_sideslip_and_regrips(prior):
+    """Power on to 30 deg, held there 6 s by the throttle loop, then out to grip again."""
+    from drift_sim.scenario import load_scenario
+    from drift_sim.simulator import Simulator
+    sim = Simulator(load_scenario('sysid_dry'))
+    seg = Segment('drift', 18.0, 9.0, (9.0,), period=18.0, power_s=2.0, drive_g=0.52,
+                  beta_peak_deg=30.0, hold_s=6.0)
+    driver = ScriptedDriver(Manoeuvre(segments=(BURSTS[0], seg)), prior, 1.0, sim.dt)
+    state, t, beta = sim.reset(), [], []
+    for _ in range(int(round((BURSTS[0].duration + seg.duration) / sim.dt))):
+        state = sim.step(driver.command(state, sim.t))
+        t.append(sim.t)
+        beta.append(abs(sim.plant.truth.state.beta))
+    t, beta = np.array(t), np.degrees(beta)
+    start = t[np.argmax(beta > 29.0)]          # the hold starts as the sideslip nears 30 deg
+    assert beta.max() < 40.0                    # the entry's overshoot caught
+    held = beta[(t > start + 2.5) & (t < start + 5.5)]   # settled after the entry's swing
+    assert 26.0 < held.min() and held.max() < 34.0
+    assert abs(held.mean() - 30.0) < 2.0
+    assert beta[-50:].max() < 6.0               # regripped at the end
 
 
 def _write_bag(path, log, with_state=True):

@@ -8,7 +8,10 @@ can follow, each at a speed held with the throttle:
 - ``steps``: steering steps of +-``steer_deg`` around straight ahead every ``period`` seconds;
 - ``sweep``: a steering sine whose frequency rises from ``f0`` to ``f1`` (a chirp);
 - ``burst``: turn in at ``steer_deg``, then full power for ``power_s`` s (power-on oversteer),
-  power off and counter-steer along the front axle's direction of travel until the car regrips.
+  power off and counter-steer along the front axle's direction of travel until the car regrips;
+- ``drift``: as a burst, but the slide is held at ``beta_peak_deg`` for ``hold_s`` s with the
+  throttle (more power, more sideslip) before the power rolls off: the steady drift the
+  controller will be asked for, so the fit sees the tyres where the drift works them.
 
 Speeds are for a mu = 1 surface and scale with sqrt(mu), drive forces (a share of the car's
 weight, so one file fits cars of any mass) with mu. Safety: beyond ``beta_abort_deg`` of sideslip the power goes
@@ -34,7 +37,7 @@ from drift_sim.simulator import Simulator
 class Segment:
     """One part of the programme; speeds [m/s] and drive forces are for mu = 1."""
 
-    kind: Literal['circle', 'steps', 'sweep', 'burst']
+    kind: Literal['circle', 'steps', 'sweep', 'burst', 'drift']
     duration: float                  # [s]
     steer_deg: float                 # turn-in angle (circle, burst) or amplitude, + left [deg]
     speed: tuple[float, ...]         # held speed, or [start, end] of a ramp [m/s]
@@ -45,14 +48,20 @@ class Segment:
     power_s: float = 1.5             # burst: seconds of power per cycle, at most [s]
     beta_peak_deg: float = 20.0      # burst: power off once the sideslip reaches this [deg]
     lift_beta_deg: float = 8.0       # circle: power off beyond this sideslip (limit found) [deg]
+    hold_s: float = 0.0              # drift: seconds the sideslip is held at beta_peak_deg [s]
+    hold_g: float = 0.25             # drift: drive force holding it, per weight, before the
+                                     # sideslip feedback [-]
+    hold_gain: float = 0.6           # drift: drive force per weight per radian of sideslip error
 
     def __post_init__(self):
         require(self.duration > 0, 'segment.duration', 'must be positive')
         require(1 <= len(self.speed) <= 2 and min(self.speed) > 0, 'segment.speed',
                 'one speed or [start, end], each positive')
         require(self.period > 0, 'segment.period', 'must be positive')
-        require(self.kind != 'burst' or 0 < self.power_s < self.period, 'segment.power_s',
-                'must lie between 0 and the period')
+        require(self.kind not in ('burst', 'drift') or 0 < self.power_s < self.period,
+                'segment.power_s', 'must lie between 0 and the period')
+        require(self.kind != 'drift' or self.power_s + self.hold_s < self.period,
+                'segment.hold_s', 'power and hold must fit in the period')
         require(0 < self.f0 <= self.f1, 'segment.f0', 'need 0 < f0 <= f1')
 
 
@@ -116,7 +125,7 @@ class ScriptedDriver:
             self._starts.append(t)
             t += seg.duration
         self._integral, self._index, self._delta = 0.0, -1, 0.0
-        self._lifted, self._power_off = False, False
+        self._lifted, self._power_off, self._hold_from = False, False, None
         self._beta_prev, self._beta_rate = 0.0, 0.0
 
     def segment_at(self, t: float) -> tuple[int, float]:
@@ -155,10 +164,10 @@ class ScriptedDriver:
         elif seg.kind == 'sweep':
             rate = (seg.f1 - seg.f0) / seg.duration
             delta = steer * math.sin(2.0 * math.pi * (seg.f0 * tau + 0.5 * rate * tau * tau))
-        else:                        # burst
+        else:                        # burst, drift
             cycle = int(tau // seg.period)
             if cycle != self._cycle:
-                self._cycle, self._power_off = cycle, None
+                self._cycle, self._power_off, self._hold_from = cycle, None, None
             delta = steer
             torque = self._burst(seg, tau % seg.period, state)
         delta = self._catch(state, delta)
@@ -201,13 +210,22 @@ class ScriptedDriver:
             return None
         # the sideslip the driver expects a moment ahead: a fast-growing slide is caught early
         ahead = abs(state.beta) + self.m.anticipation * max(self._beta_rate, 0.0)
+        weight = self.mu * self.p.m * self.p.g * self.p.R_R    # drive torque per g of force
+        if seg.kind == 'drift' and self._power_off is None:
+            if self._hold_from is None and ahead > math.radians(seg.beta_peak_deg):
+                self._hold_from = tau
+            if self._hold_from is not None:
+                if tau - self._hold_from < seg.hold_s:    # hold: more power, more sideslip
+                    error = math.radians(seg.beta_peak_deg) - ahead
+                    self._power = max(0.0, weight * (seg.hold_g + seg.hold_gain * error))
+                    return self._power
+                self._power_off = tau
         if self._power_off is None and (ahead > math.radians(seg.beta_peak_deg)
                                         or tau >= power_from + seg.power_s):
             self._power_off = tau
         if self._power_off is None:   # full power, eased off as the sideslip nears its peak
             ease = (ahead / math.radians(seg.beta_peak_deg) - 0.3) / 0.5
-            full = seg.drive_g * self.mu * self.p.m * self.p.g * self.p.R_R
-            self._power = full * (1.0 - 0.8 * min(1.0, max(0.0, ease)))
+            self._power = seg.drive_g * weight * (1.0 - 0.8 * min(1.0, max(0.0, ease)))
             return self._power
         fade = 1.0 - (tau - self._power_off) / 0.5
         if fade > 0.0:
