@@ -260,6 +260,29 @@ def test_course_yaw_keeps_the_velocity_direction_turning_with_the_path(course_ya
         assert error[-1] == pytest.approx(60.0, abs=3.0)
 
 
+@pytest.mark.parametrize('entry, course_error_max_deg', [(True, 3.0), (False, None)])
+def test_course_yaw_in_the_entry_is_an_option(entry, course_error_max_deg):
+    """The entry ramp (0 -> 30 deg over 30 m of the R = 15 m circle at 10 m/s), the references
+    followed exactly: with ``course_yaw_entry`` the course turns with the path; without it the
+    course falls behind by the whole sideslip ramp."""
+    prof = P.SideslipProfile(math.radians(30.0), grip_until=10.0, ramp_length=30.0)
+    path = P.circle(R, sideslip=prof)
+    p = params(horizon_steps=25, course_yaw=True, course_yaw_entry=entry, radius_max=40.0)
+    sel = ReferenceSelector(constant_speed_lookup, path, p)
+    V, dt = 10.0, 0.02
+    refs = [sel.select(state_on(path, s, t=k * dt)) for k, s in
+            enumerate(np.arange(0.0, 50.0, V * dt))]
+    assert refs[-1].target.beta == pytest.approx(-math.radians(30.0))
+    yaw = np.cumsum([0.0] + [r.target.r * dt for r in refs[:-1]])
+    course = yaw + np.array([r.target.beta for r in refs])
+    path_heading = np.cumsum([0.0] + [r.curvature * V * dt for r in refs[:-1]])
+    error = np.degrees(np.abs((course - course[0]) - path_heading))
+    if course_error_max_deg is not None:
+        assert error.max() < course_error_max_deg
+    else:
+        assert error[-1] == pytest.approx(30.0, abs=3.0)
+
+
 def test_lateral_correction_does_not_flip_the_drift_side():
     """Mid-clothoid, where the path still curves left, a car 3 m right of the path (a large
     correction to the left) and one 3 m left (to the right) both keep the path's side."""

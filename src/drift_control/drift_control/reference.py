@@ -58,6 +58,8 @@ class ReferenceParams:
     side_from_path_beta: float = 0.05   # ... on a straight only while the sideslip reference
                                   # is above this [rad]; in grip the corrected curvature's
     course_yaw: bool = True       # yaw-rate reference r_eq - d(beta_ref)/dt (see _course_yaw)
+    course_yaw_entry: bool = False  # ... in the entry ramp too (a controller model whose
+                                  # entries brake: docs/tuning_log.md)
     speed_rise_max: float = 0.0   # leaving a drift (and in grip after the entry) the speed
                                   # reference rises at most this fast, in time and along the
                                   # horizon [m/s^2] (0: off)
@@ -297,7 +299,8 @@ class ReferenceSelector:
             horizon = _speed_rise(horizon, cap, p.speed_rise_max * p.horizon_dt)
             target = horizon[0]
         flipping = any(0.0 < wk < 1.0 for wk in weights)
-        if p.course_yaw and (flipping or after_entry) and len(horizon) > 1:   # needs stages
+        in_use = flipping or after_entry or p.course_yaw_entry
+        if p.course_yaw and in_use and len(horizon) > 1:   # needs stages
             horizon = _course_yaw(horizon, p.horizon_dt)
             target = horizon[0]
         ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
@@ -405,8 +408,8 @@ def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium
     and the moving sideslip together would turn the course by the whole sideslip change (the
     flip's lateral overshoot: 4.4 m without, 0.6 m with; an exit's 30 deg unwinding ran the
     car 3-8 m wide). The rate is a central difference along the stages. Applied while a flip
-    is in the horizon and after the entry; the entry ramp's rate (~0.1 rad/s) is left out
-    (docs/tuning_log.md).
+    is in the horizon and after the entry; in the entry ramp (~0.16 rad/s) only with
+    ``course_yaw_entry`` (docs/tuning_log.md).
     """
     beta = [e.beta for e in stages]
     n = len(beta)
