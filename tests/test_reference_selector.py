@@ -233,6 +233,15 @@ def constant_speed_lookup(beta_abs, radius, direction):
     return replace(eq, V=10.0, r=int(direction) * 10.0 / radius), clamped
 
 
+def _course_error_deg(refs, V, dt):
+    """How far the course (psi + beta) of a car that follows ``refs`` exactly has turned away
+    from the path's heading, per sample [deg]."""
+    yaw = np.cumsum([0.0] + [r.target.r * dt for r in refs[:-1]])
+    course = yaw + np.array([r.target.beta for r in refs])
+    path_heading = np.cumsum([0.0] + [r.curvature * V * dt for r in refs[:-1]])
+    return np.degrees(np.abs((course - course[0]) - path_heading))
+
+
 @pytest.mark.parametrize('course_yaw, course_error_max_deg', [(True, 3.0), (False, None)])
 def test_course_yaw_keeps_the_velocity_direction_turning_with_the_path(course_yaw,
                                                                      course_error_max_deg):
@@ -250,10 +259,7 @@ def test_course_yaw_keeps_the_velocity_direction_turning_with_the_path(course_ya
     refs = [sel.select(state_on(path, s, t=k * dt)) for k, s in
             enumerate(np.arange(s0, s0 + 60.0, V * dt))]
     assert refs[0].direction == Direction.LEFT and refs[-1].direction == Direction.RIGHT
-    yaw = np.cumsum([0.0] + [r.target.r * dt for r in refs[:-1]])
-    course = yaw + np.array([r.target.beta for r in refs])
-    path_heading = np.cumsum([0.0] + [r.curvature * V * dt for r in refs[:-1]])
-    error = np.degrees(np.abs((course - course[0]) - path_heading))
+    error = _course_error_deg(refs, V, dt)
     if course_error_max_deg is not None:
         assert error.max() < course_error_max_deg
     else:
@@ -273,10 +279,7 @@ def test_course_yaw_in_the_entry_is_an_option(entry, course_error_max_deg):
     refs = [sel.select(state_on(path, s, t=k * dt)) for k, s in
             enumerate(np.arange(0.0, 50.0, V * dt))]
     assert refs[-1].target.beta == pytest.approx(-math.radians(30.0))
-    yaw = np.cumsum([0.0] + [r.target.r * dt for r in refs[:-1]])
-    course = yaw + np.array([r.target.beta for r in refs])
-    path_heading = np.cumsum([0.0] + [r.curvature * V * dt for r in refs[:-1]])
-    error = np.degrees(np.abs((course - course[0]) - path_heading))
+    error = _course_error_deg(refs, V, dt)
     if course_error_max_deg is not None:
         assert error.max() < course_error_max_deg
     else:
