@@ -55,3 +55,24 @@ def test_a_failing_ros_logger_never_raises_into_the_caller():
     finally:
         log.removeHandler(handler)
         logging.raiseExceptions = saved
+
+
+def test_one_handler_logs_every_severity_through_a_real_rclpy_logger():
+    """rclpy refuses a second severity from one call site: each must get through all the same."""
+    rclpy_logging = pytest.importorskip('rclpy.logging')
+    failed = []
+
+    class Recording(RosLogHandler):
+        def handleError(self, record):
+            failed.append(record.getMessage())
+    log = logging.getLogger('drift_control.severity_test')
+    handler = Recording(rclpy_logging.get_logger('severity_test'))
+    log.addHandler(handler)
+    try:
+        log.warning('ACTIVE_FULL -> OFF')
+        log.info('armed')
+        log.error('lost')
+        log.warning('ACTIVE_FULL -> OFF again')
+    finally:
+        log.removeHandler(handler)
+    assert failed == []

@@ -8,21 +8,30 @@ from __future__ import annotations
 
 import logging
 
-_METHODS = ((logging.CRITICAL, 'fatal'), (logging.ERROR, 'error'), (logging.WARNING, 'warning'),
-            (logging.INFO, 'info'), (logging.DEBUG, 'debug'))
-
-
 class RosLogHandler(logging.Handler):
-    """Forwards each record to an rclpy logger at the matching severity."""
+    """Forwards each record to an rclpy logger at the matching severity.
+
+    rclpy keys a logger's severity by the line that calls it and refuses another severity from
+    the same line: each severity has its own call here.
+    """
 
     def __init__(self, ros_logger):
         super().__init__()
-        self.ros_logger = ros_logger
+        self.ros = ros_logger
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            method = next(m for level, m in _METHODS if record.levelno >= level)
-            getattr(self.ros_logger, method)(f'{record.name}: {record.getMessage()}')
+            text, level, ros = f'{record.name}: {record.getMessage()}', record.levelno, self.ros
+            if level >= logging.CRITICAL:
+                ros.fatal(text)
+            elif level >= logging.ERROR:
+                ros.error(text)
+            elif level >= logging.WARNING:
+                ros.warning(text)
+            elif level >= logging.INFO:
+                ros.info(text)
+            else:
+                ros.debug(text)
         except Exception:   # noqa: BLE001 - a log line must never break the node
             self.handleError(record)
 
