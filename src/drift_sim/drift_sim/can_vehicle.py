@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from drift_control.cycle_watch import CycleWatch
 from drift_control.signals import Command, Mode, VehicleState
 from drift_sim.simulator import Simulator
 
@@ -35,14 +36,11 @@ class CanVehicle:
         self.engaged = False   # a request has been accepted since the start
         self.released = 0      # steps without an accepted request
         self.command: Command | None = None
-        self.step_gap_max = 0.0   # longest time between two steps: the car's stall [s]
-        self._last_step: float | None = None
+        self.cycle = CycleWatch()   # the longest time between two steps: the car's stall
 
     def step(self, now: float) -> VehicleState:
         """One 10 ms cycle at ``now`` [s] (the bus side's clock): poll, step, send."""
-        if self._last_step is not None:
-            self.step_gap_max = max(self.step_gap_max, now - self._last_step)
-        self._last_step = now
+        self.cycle.tick(now)
         command = self.car.poll_command(now)
         self.engaged = self.engaged or command is not None
         if self.hold and not self.engaged:   # sensors still measure (noise): never frozen

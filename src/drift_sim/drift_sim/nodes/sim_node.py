@@ -150,8 +150,7 @@ class SimNode(Node):
         """The car's end of the link: which requests it accepted, their rates and E2E states."""
         from drift_vehicle_bridge.nodes.convert import car_side_status
         status = car_side_status(self._can.car.stats(), self._can.released,
-                                 self._can.step_gap_max, self._link_name)
-        self._can.step_gap_max = 0.0    # each status: the longest gap since the last one
+                                 self._can.cycle.take(), self._link_name)
         self._diag_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now()
                                                              .to_msg()), status=[status]))
 

@@ -9,6 +9,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
+from drift_control.cycle_watch import CycleWatch
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.spin import run_node
@@ -58,6 +59,7 @@ class BridgeNode(Node):
         self._hw = log_file or params.link()
         self._stats, self._diag_period = None, 1.0
         self._ticked = False
+        self._cycle = CycleWatch()   # the longest gap between two cycles, for the diagnostics
         state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
@@ -98,6 +100,7 @@ class BridgeNode(Node):
             self._ticked = True
             self._gw.discard_backlog()
         now = time.monotonic()
+        self._cycle.tick(now)
         for msg in self._replay.due(now) if self._replay else ():
             self._gw.receive(msg, now)
         state = self._gw.step(now)
@@ -108,6 +111,8 @@ class BridgeNode(Node):
         stats = self._gw.stats()
         diag = convert.stats_to_diagnostics(stats, self._stats, self._diag_period,
                                             self.get_clock().now().to_msg(), self._hw)
+        diag.status[0].values.extend(convert.key_values(convert.gap_values(
+            'cycle_gap', self._cycle.take())))
         recording = self._recorder.status(time.monotonic())
         if recording is not None:
             diag.status.append(convert.peer_status('vehicle_bridge: recording', *recording))

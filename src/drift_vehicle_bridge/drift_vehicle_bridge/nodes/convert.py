@@ -64,27 +64,42 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     values.update({f'drops/{k}': v for k, v in stats.get('drops', {}).items()})
     values.update({f'tx/{k}': v for k, v in stats['tx'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
-    status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+    status.values = key_values(values)
     return DiagnosticArray(header=Header(stamp=stamp), status=[status])
 
 
-def car_side_status(stats: dict, released: int, step_gap_max: float,
+def car_side_status(stats: dict, released: int, step_gap: dict[str, float],
                     hardware_id: str) -> DiagnosticStatus:
-    """The simulated car's end of the link (``CarSide.stats``): what it accepted of the requests."""
+    """The simulated car's end of the link (``CarSide.stats``): what it accepted of the requests,
+    and its longest gap between two steps since the last status (``CycleWatch.take``)."""
     faulty = stats['faults'] or stats['errors']
     status = DiagnosticStatus(name='car side', hardware_id=hardware_id,
                               level=DiagnosticStatus.WARN if faulty else DiagnosticStatus.OK,
                               message='request faults' if faulty else 'ok')
-    values = {'sent': stats['sent'], 'released_steps': released, 'foreign': stats['foreign'],
-              'step_gap_max_ms': f'{1e3 * step_gap_max:.1f}'}
+    values = {'sent': stats['sent'], 'released_steps': released, 'foreign': stats['foreign']}
+    values.update(gap_values('step_gap', step_gap))
     values.update({f'rx/{k}': v for k, v in stats['rx'].items()})
     values.update({f'rx_rate/{k}': f'{v:.1f}' for k, v in stats['rx_rate'].items()})
     values.update({f'rx_stamp/{k}': f'{v:.6f}' for k, v in stats['rx_stamp'].items()})
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
     values.update({f'e2e/{k}': v for k, v in stats['e2e'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
-    status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+    status.values = key_values(values)
     return status
+
+
+def gap_values(name: str, gap: dict[str, float]) -> dict[str, str]:
+    """A cycle's longest gap and its parts (``CycleWatch.take``) as diagnostic values [ms]:
+    ``<name>_max_ms`` and ``<name>_ran_ms``, ``_waited_ms``, ``_stolen_ms``."""
+    out = {f'{name}_max_ms': f"{1e3 * gap['gap']:.1f}"}
+    out.update({f'{name}_{part}_ms': f'{1e3 * gap[part]:.1f}'
+                for part in ('ran', 'waited', 'stolen')})
+    return out
+
+
+def key_values(values: dict) -> list[KeyValue]:
+    """Diagnostic key-value pairs, the values as strings."""
+    return [KeyValue(key=k, value=str(v)) for k, v in values.items()]
 
 
 def peer_status(name: str, level: int, message: str) -> DiagnosticStatus:
