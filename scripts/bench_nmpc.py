@@ -77,14 +77,15 @@ class DoMpcController:
         ref = model.tvp['ref']
         scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
         err = ca.sumsqr((x - ref[:NXO]) / scale)
-        lterm = err + (u[0] / c.delta_dot) ** 2 + ((u[1] - ref[6]) / c.T_R) ** 2
+        T_R_scale, T_R_rate_scale = c.torque(b)
+        lterm = err + (u[0] / c.delta_dot) ** 2 + ((u[1] - ref[6]) / T_R_scale) ** 2
         mpc = do_mpc.controller.MPC(model)
         mpc.settings.n_horizon = params.N
         mpc.settings.t_step = params.dt
         mpc.settings.store_full_solution = False
         mpc.settings.nlpsol_opts = {'ipopt.print_level': 0, 'ipopt.sb': 'yes', 'print_time': 0}
         mpc.set_objective(lterm=lterm, mterm=c.terminal_factor * err)
-        mpc.set_rterm(T_R=1.0 / (c.T_R_rate * params.dt) ** 2)
+        mpc.set_rterm(T_R=1.0 / (T_R_rate_scale * params.dt) ** 2)
         mpc.bounds['lower', '_x', 'delta'] = -b.delta_max
         mpc.bounds['upper', '_x', 'delta'] = b.delta_max
         mpc.bounds['lower', '_u', 'delta_dot'] = -b.delta_dot_max

@@ -98,6 +98,26 @@ def test_tighter_yaml_limits_win(vp):
 
 # --- closed loop ---------------------------------------------------------------------------------
 
+def test_torque_costs_scale_with_the_cars_torque_range_where_asked(vp):
+    """Scales set for the M3's range: a car with a third of it is charged the same per share of
+    its range, not a third as much; off (0), every car has the scales in Nm."""
+    base = load_nmpc_params()
+    assert base.cost.torque_range == 0.0
+    gr86 = load_vehicle('gr86')
+    b = Ocp(gr86, base).bounds
+    assert base.cost.torque(b) == (base.cost.T_R, base.cost.T_R_rate)
+    params = dataclasses.replace(base, cost=dataclasses.replace(base.cost, torque_range=7500.0))
+    m3 = Ocp(vp, params).bounds
+    assert m3.T_R_max - m3.T_R_min == 7500.0
+    assert params.cost.torque(m3) == (base.cost.T_R, base.cost.T_R_rate)
+    share = (b.T_R_max - b.T_R_min) / 7500.0
+    assert share == pytest.approx(2500.0 / 7500.0)
+    assert params.cost.torque(b) == pytest.approx((base.cost.T_R * share,
+                                                   base.cost.T_R_rate * share))
+    with pytest.raises(ParamError, match='torque_range'):
+        dataclasses.replace(base.cost, torque_range=-1.0)
+
+
 def test_closed_loop_converges_to_30deg_drift(nmpc, plant, eq30):
     """Plant: full model, friction 5 % below the NMPC's, measurement noise."""
     xs, results = run_loop(nmpc, plant, eq30, perturbed_start(eq30), 5.0, mu_plant=0.95)

@@ -43,7 +43,10 @@ REF_T_R = 6                # index of T_R in one reference row
 class CostScales:
     """Error of unit cost for each term; each stage cost term is ``(error / scale)^2``.
 
-    A smaller scale weighs a term more. State errors are to the equilibrium reference.
+    A smaller scale weighs a term more. State errors are to the equilibrium reference. With a
+    ``torque_range``, the torque scales are for a car of that torque range and another car's
+    scale with its own (``torque``): a car with less torque is then charged the same per share
+    of its range. 0: the torque scales in Nm for every car.
     """
 
     V: float = 3.0              # speed [m/s]
@@ -56,10 +59,20 @@ class CostScales:
     delta_dot: float = 0.5      # steering rate [rad/s]
     T_R_rate: float = 20000.0   # drive torque rate [Nm/s]
     terminal_factor: float = 5.0   # terminal state cost = factor x stage state cost [-]
+    torque_range: float = 0.0   # T_R_max - T_R_min the torque scales are set for [Nm]; 0: none
 
     def __post_init__(self):
         for name, value in self.__dict__.items():
-            require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
+            if name != 'torque_range':
+                require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
+        require(self.torque_range >= 0, 'nmpc.cost.torque_range', 'must be >= 0 (0: off)')
+
+    def torque(self, bounds: 'Bounds') -> tuple[float, float]:
+        """The scales (T_R [Nm], T_R_rate [Nm/s]) for a car with the torque ``bounds``."""
+        if self.torque_range == 0.0:
+            return self.T_R, self.T_R_rate
+        share = (bounds.T_R_max - bounds.T_R_min) / self.torque_range
+        return self.T_R * share, self.T_R_rate * share
 
 
 @dataclass(frozen=True)
@@ -236,14 +249,15 @@ class Ocp:
         refs, _, _ = self.unpack_params(self.p)
         c = params.cost
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
+        T_R_scale, T_R_rate_scale = c.torque(self.bounds)
         res = []
         for k in range(N):   # every residual is linear in w: the GN Hessian is constant
             xk, uk = self.x(self.w, k), self.u(self.w, k)
             res.append(uk[U.DELTA_DOT] / c.delta_dot)
             # stage 0's change comes one control period after T_last, but is scaled by the stage
             # as the others (scaled by the period, wet entries spun more: docs/tuning_log.md)
-            res.append((uk[U.T_R] - xk[S_T_LAST]) / (c.T_R_rate * params.dt))
-            res.append((uk[U.T_R] - refs[k][REF_T_R]) / c.T_R)
+            res.append((uk[U.T_R] - xk[S_T_LAST]) / (T_R_rate_scale * params.dt))
+            res.append((uk[U.T_R] - refs[k][REF_T_R]) / T_R_scale)
             if k > 0:   # x_0 is fixed: its cost is a constant
                 res.append((xk[:NXO] - refs[k][:NXO]) / state_scale)
         term = math.sqrt(c.terminal_factor)
