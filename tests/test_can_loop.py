@@ -179,7 +179,7 @@ def _stalls(diags, name: str, who: str, t0: float) -> list[dict]:
         gap = float(d.get(f'{name}_max_ms', 0.0)) / 1e3
         if gap > STALL_S:
             parts = {p: float(d[f'{name}_{p}_ms']) / 1e3 for p in ('ran', 'waited', 'stolen')}
-            out.append({'who': who, 't': round(d['_t'] - t0, 2), 'gap': round(gap, 3),
+            out.append({'who': who, 't': round(float(d['_t'] - t0), 2), 'gap': round(gap, 3),
                         **{p: round(v, 3) for p, v in parts.items()},
                         'machine': gap - parts['waited'] - parts['stolen'] <= STALL_S})
     return out

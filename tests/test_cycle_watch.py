@@ -1,11 +1,12 @@
 """CycleWatch: a cycle's longest gap, split into its own running, waiting for a CPU and steal."""
+import os
 import time
 
 import pytest
 
 from drift_control.cycle_watch import CycleWatch
 
-linux = pytest.mark.skipif(not __import__('os').path.exists('/proc/thread-self/schedstat'),
+linux = pytest.mark.skipif(not os.path.exists('/proc/thread-self/schedstat'),
                            reason='no per-thread scheduler statistics here')
 
 

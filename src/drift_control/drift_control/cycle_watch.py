@@ -22,7 +22,8 @@ class CycleWatch:
     """
 
     def __init__(self):
-        self._last: tuple[float, int, int, int] | None = None
+        self._last: tuple[float, int, int, tuple[int, ...]] | None = None
+        self._tick = 1.0 / os.sysconf('SC_CLK_TCK') if hasattr(os, 'sysconf') else 0.01   # [s]
         self.reset()
 
     def reset(self) -> None:
@@ -35,11 +36,10 @@ class CycleWatch:
         if self._last is not None:
             gap = now - self._last[0]
             if gap > self.gap:
-                tick = 1.0 / os.sysconf('SC_CLK_TCK')
                 self.gap = gap
                 self.ran = 1e-9 * (ran - self._last[1])
                 self.waited = 1e-9 * (waited - self._last[2])
-                self.stolen = min(gap, tick * max(
+                self.stolen = min(gap, self._tick * max(
                     (b - a for a, b in zip(self._last[3], stolen)), default=0))
         self._last = (now, ran, waited, stolen)
 
