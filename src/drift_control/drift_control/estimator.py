@@ -329,8 +329,9 @@ class Estimator:
         F[E.PSI, E.B_R] = -h
         F[E.X, E.VX], F[E.X, E.VY], F[E.X, E.PSI] = h * c, -h * s, -h * (x[E.VX] * s + x[E.VY] * c)
         F[E.Y, E.VX], F[E.Y, E.VY], F[E.Y, E.PSI] = h * s, h * c, h * (x[E.VX] * c - x[E.VY] * s)
-        # IMU noise enters through the same columns as the biases it adds to
-        G = F[:, [E.B_AX, E.B_AY, E.B_R]]
+        # IMU noise drives the states its biases drive, not the biases themselves
+        G = F[:, [E.B_AX, E.B_AY, E.B_R]].copy()
+        G[E.B_AX:E.B_R + 1] = 0.0
         q = np.diag([p.accel_std ** 2, p.accel_std ** 2, p.gyro_std ** 2])
         Q = G @ q @ G.T
         Q[E.B_AX, E.B_AX] += p.accel_bias_walk ** 2 * h
@@ -391,6 +392,10 @@ class Estimator:
             self.P[i, :] = 0.0
             self.P[:, i] = 0.0
             self.P[i, i] = var
+        if channel == 'imu.ax/ay':   # the velocity integrated the step until it was seen
+            span = p.bias_window * 0.01
+            for i in (E.VX, E.VY):
+                self.P[i, i] += var * span * span
         reason = 'bias step' if channel.startswith('imu') else f'{verdict} accepted'
         if not any(e.channel == channel and e.reason == reason and self._now - e.t < 1.0
                    for e in self.events[-8:]):   # one fault, one name: not once per window
