@@ -132,6 +132,8 @@ class _Monitor:
         self.name, self.p = name, p
         self.last, self.same, self.rejected = None, 0, 0
         self.window = deque(maxlen=p.bias_window)
+        self.stamps = deque(maxlen=p.bias_window)
+        self.span = 0.0   # the time a step or bias took to be seen [s]
         self.excluded: str | None = None    # the reason it is left out, or None
         self.nis: list[float] = []
 
@@ -141,13 +143,16 @@ class _Monitor:
         self.last = value
         return self.same >= self.p.frozen_samples
 
-    def judge(self, nis: float, normalised: float) -> str:
-        """'accept', 'reject', 'jump', 'step' or 'bias' for one innovation."""
+    def judge(self, nis: float, normalised: float, stamp: float) -> str:
+        """'accept', 'reject', 'jump', 'step' or 'bias' for one innovation of a sample
+        stamped ``stamp``."""
         self.nis.append(nis)
         self.window.append(normalised)   # a rejected sample is evidence of a bias too
+        self.stamps.append(stamp)
         if nis > self.p.gate:
             self.rejected += 1
             if self.rejected >= self.p.persist:
+                self.span = stamp - self.stamps[-self.rejected]
                 self.rejected = 0
                 self.window.clear()
                 return 'step'
@@ -155,6 +160,7 @@ class _Monitor:
         self.rejected = 0
         if (len(self.window) == self.window.maxlen
                 and abs(sum(self.window)) / math.sqrt(len(self.window)) > self.p.bias_threshold):
+            self.span = stamp - self.stamps[0]
             self.window.clear()
             return 'bias'
         return 'accept'
@@ -360,7 +366,7 @@ class Estimator:
         PH = self.P @ H
         HPH = float(H @ PH)
         S, S_test = HPH + R, HPH + (R if R_test is None else R_test)
-        verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test))
+        verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t)
         if verdict in ('reject', 'jump'):
             if verdict == 'jump':
                 self._event(name, 'jump')
@@ -393,7 +399,7 @@ class Estimator:
             self.P[:, i] = 0.0
             self.P[i, i] = var
         if channel == 'imu.ax/ay':   # the velocity integrated the step until it was seen
-            span = p.bias_window * 0.01
+            span = self.monitors[name].span
             for i in (E.VX, E.VY):
                 self.P[i, i] += var * span * span
         reason = 'bias step' if channel.startswith('imu') else f'{verdict} accepted'
@@ -485,7 +491,7 @@ class Estimator:
             filt.update(stamp, z)
             return
         nu, S = filt.innovation(stamp, z)
-        verdict = self.monitors[name].judge(nu * nu / S, nu / math.sqrt(S))
+        verdict = self.monitors[name].judge(nu * nu / S, nu / math.sqrt(S), stamp)
         if verdict == 'jump':
             self._event(name, 'jump')
         if verdict == 'step':
