@@ -20,6 +20,7 @@ import sys
 
 import numpy as np
 
+from drift_control.params import ParamError
 from drift_sim.closed_loop import run_closed_loop
 
 CONFIGS = {'a': {}, 'b': {'sensors': 'realistic', 'estimator': 'none'},
@@ -36,8 +37,9 @@ def torque_smoothness(t, T_cmd, window, period=0.02):
     return float(np.std(T)), float(np.mean(np.abs(np.diff(T))))
 
 
-def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor_set=()):
-    kwargs = dict(CONFIGS[config])
+def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor_set=(),
+             vehicle=None):
+    kwargs = dict(CONFIGS[config], vehicle=vehicle)
     if faults and 'sensors' in kwargs:
         kwargs['sensor_faults'] = list(faults)
     if config == 'c':
@@ -47,7 +49,8 @@ def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor
     out, data = run_closed_loop(scenario, seed=seed, **kwargs)
     t = data['t']
     std, change = torque_smoothness(t, data['T_cmd'], window)
-    row = {'scenario': scenario, 'seed': seed, 'config': config, 'faults': list(faults),
+    row = {'scenario': scenario, 'vehicle': vehicle, 'seed': seed, 'config': config,
+           'faults': list(faults),
            'spun': out['spun'], 'beta_rms_error_deg': out['beta_rms_error_deg'],
            'torque_std_Nm': std, 'torque_change_Nm': change,
            'max_abs_e_y_steady_m': out['max_abs_e_y_steady_m']}
@@ -74,6 +77,7 @@ def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--scenario', default='steady_dry')
+    parser.add_argument('--vehicle', help="config/vehicle/<name>.yaml (default: the scenario's)")
     parser.add_argument('--seeds', type=int, nargs='+', default=[0])
     parser.add_argument('--configs', nargs='+', default=list(CONFIGS), choices=list(CONFIGS))
     parser.add_argument('--window', type=float, nargs=2, default=(20.0, 55.0))
@@ -88,8 +92,12 @@ def main(argv=None) -> int:
     rows = []
     for seed in args.seeds:
         for config in args.configs:
-            row = evaluate(args.scenario, seed, config, args.window, args.fault,
-                           args.estimator_set, args.sensor_set)
+            try:
+                row = evaluate(args.scenario, seed, config, args.window, args.fault,
+                               args.estimator_set, args.sensor_set, args.vehicle)
+            except ParamError as err:
+                print(f'estimator_eval: {err}', file=sys.stderr)
+                return 2
             rows.append(row)
             brief = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()
                      if k not in ('nis', 'events')}
