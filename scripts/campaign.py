@@ -50,6 +50,12 @@ def parser() -> argparse.ArgumentParser:
                    help='seed of the plant draws (default 0)')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='override a scenario key in every run (duration=5, surface.mu=0.95)')
+    p.add_argument('--sensors', default='', metavar='NAME',
+                   help='the controller sees the car through config/sim/sensors/NAME.yaml '
+                   '(e.g. realistic) instead of the plant\'s own noise model')
+    p.add_argument('--estimator', default='', choices=['', 'ekf', 'none'],
+                   help='with --sensors: fuse them (ekf) or pass the newest samples (none; '
+                   'the default with --sensors)')
     p.add_argument('--config-dir', default=str(config_dir()))
     p.add_argument('--store', required=True,
                    help='JSON lines file of finished runs; read first, appended to')
@@ -76,7 +82,8 @@ def main(argv=None) -> int:
         scenarios = args.scenario or control_scenario_names(args.config_dir)
         vehicles = args.vehicle or vehicle_names(args.config_dir)
         jobs = campaign_jobs(scenarios, vehicles, seeds, args.plants, args.set,
-                             args.plant_seed, config)
+                             args.plant_seed, config, args.sensors,
+                             args.estimator or ('none' if args.sensors else ''))
         store = RunStore(args.store)
         if args.address:
             check_address(args.address)

@@ -58,6 +58,20 @@ def test_a_replay_command_is_the_job_for_simulate_py():
     assert [words[i + 1] for i, w in enumerate(words) if w == '--set'] == list(job.overrides)
 
 
+def test_jobs_through_the_sensors_and_estimator_carry_them_into_key_row_and_replay():
+    plain = campaign_jobs(['steady_dry'], ['gr86'], [0], plants=1)[0]
+    sensed = campaign_jobs(['steady_dry'], ['gr86'], [0], plants=1, sensors='realistic',
+                           estimator='ekf')[0]
+    assert sensed.overrides == plain.overrides and sensed.key != plain.key
+    assert (sensed.row()['sensors'], sensed.row()['estimator']) == ('realistic', 'ekf')
+    assert 'sensors' not in plain.row()
+    words = shlex.split(sensed.replay_command())
+    assert words[words.index('--sensors') + 1] == 'realistic'
+    assert words[words.index('--estimator') + 1] == 'ekf'
+    with pytest.raises(ParamError, match="'kalman' is not one of"):
+        campaign_jobs(['steady_dry'], ['gr86'], [0], sensors='realistic', estimator='kalman')
+
+
 @pytest.mark.parametrize('scenario, vehicle, message', [
     ('no_such', 'gr86', 'known scenarios: alternating_dry'),
     ('steady_dry', 'no_such', 'known vehicles: gr86, m3_competition')])
@@ -141,6 +155,8 @@ def broken_population(tmp_path):
     (['--set', 'plant.body.mass=3'], "unknown key(s) ['mass']"),
     (['--address', f'127.0.0.1:{_free_port()}'], 'cannot reach it'),
     (['--address', 'nowhere'], 'expected host:port'),
+    (['--sensors', 'no_such'], "sensors 'no_such'"),
+    (['--estimator', 'ekf'], 'estimator: needs sensors'),
     (['--plants', '1', '--vehicle', 'gr86', '--config-dir', 'BROKEN'],
      'gr86.yaml: parameters.mass.relative: expected [low, high]'),
 ])

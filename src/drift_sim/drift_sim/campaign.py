@@ -20,10 +20,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from drift_control.params import ParamError, config_dir, vehicle_file
+from drift_control.estimator import ESTIMATORS
+from drift_control.params import ParamError, config_dir, require, vehicle_file
 from drift_control.scenario import load_scenario_spec, scenario_file, scenario_names
 from drift_sim.population import draw, load_population
 from drift_sim.scenario import load_scenario
+from drift_sim.sensors import load_sensor_params
 from drift_sim.sweep import ERROR, outcome, run_seed
 
 
@@ -90,7 +92,8 @@ def check_run(scenario: str, vehicle: str, overrides=(), config=None) -> None:
 
 
 def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
-                  plant_seed: int = 0, config: str | None = None) -> list[Job]:
+                  plant_seed: int = 0, config: str | None = None, sensors: str = '',
+                  estimator: str = '') -> list[Job]:
     """Every scenario x vehicle x plant x seed; ParamError names bad input.
 
     Ordered plant by plant (then seed), each with every scenario and vehicle: a campaign
@@ -108,6 +111,13 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
     overrides = tuple(overrides)
     if plants < 0:
         raise ParamError(f'plants: expected >= 0, got {plants}')
+    if estimator and not sensors:
+        raise ParamError('estimator: needs sensors (the estimator fuses the sensor units)')
+    if sensors:
+        load_sensor_params(sensors, config)
+        require(estimator in ESTIMATORS, 'estimator',
+                f'{estimator!r} is not one of {list(ESTIMATORS)}')
+    sensed = {'sensors': sensors, 'estimator': estimator}
     runs = {}   # (draw, seed) -> the jobs of every scenario and vehicle
     for scenario in scenarios:
         for vehicle in vehicles:
@@ -115,7 +125,7 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
             if plants == 0:
                 for seed in seeds:
                     runs.setdefault((None, seed), []).append(
-                        Job(scenario, vehicle, seed, overrides, config=config))
+                        Job(scenario, vehicle, seed, overrides, config=config, **sensed))
                 continue
             population = load_population(vehicle, scenario, overrides, config)
             for index in range(plants):
@@ -123,7 +133,7 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
                 for seed in seeds:
                     runs.setdefault((index, seed), []).append(
                         Job(scenario, vehicle, seed, overrides + plant.overrides, index,
-                            plant_seed, plant.values, config))
+                            plant_seed, plant.values, config, **sensed))
     return [job for batch in runs.values() for job in batch]
 
 
