@@ -152,7 +152,7 @@ class _Monitor:
         if nis > self.p.gate:
             self.rejected += 1
             if self.rejected >= self.p.persist:
-                self.span = stamp - self.stamps[-self.rejected]
+                self.span = stamp - self.stamps[-min(self.rejected, len(self.stamps))]
                 self.rejected = 0
                 self.window.clear()
                 return 'step'
