@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import load_script
 
 from drift_control.estimator import E, Estimator, LatestSamples, load_estimator_params
 from drift_control.params import ParamError, config_dir, load_vehicle
@@ -199,3 +200,15 @@ def test_frame_stepper_starts_over_after_absurd_samples(value, failure):
             state = stepper.step(frame, round(k * DT, 9))
     assert stepper.restarts == 1 and stepper.failure.startswith(failure), stepper.failure
     assert state.V == pytest.approx(9.0, abs=0.1) and abs(state.r - 0.6) < 0.05
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--vehicle', 'no_such'], "vehicle 'no_such'"),
+    (['--scenario', 'no_such'], 'no_such.yaml'),
+    (['--estimator-set', 'gate=-1'], 'estimator.gate'),
+])
+def test_estimator_eval_refuses_bad_input_in_one_line(argv, message, capsys):
+    rc = load_script('estimator_eval').main(['--configs', 'c', *argv])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count('\n') == 1 and err.startswith('estimator_eval: ') \
+        and message in err, err
