@@ -53,7 +53,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--sensors', default='', metavar='NAME',
                    help='the controller sees the car through config/sim/sensors/NAME.yaml '
                    '(e.g. realistic) instead of the plant\'s own noise model')
-    p.add_argument('--estimator', default='', choices=['', 'ekf', 'none'],
+    p.add_argument('--estimator', default='',
                    help='with --sensors: fuse them (ekf) or pass the newest samples (none; '
                    'the default with --sensors)')
     p.add_argument('--config-dir', default=str(config_dir()))

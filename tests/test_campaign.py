@@ -157,6 +157,7 @@ def broken_population(tmp_path):
     (['--address', 'nowhere'], 'expected host:port'),
     (['--sensors', 'no_such'], "sensors 'no_such'"),
     (['--estimator', 'ekf'], 'estimator: needs sensors'),
+    (['--sensors', 'realistic', '--estimator', 'kalman'], "'kalman' is not one of"),
     (['--plants', '1', '--vehicle', 'gr86', '--config-dir', 'BROKEN'],
      'gr86.yaml: parameters.mass.relative: expected [low, high]'),
 ])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import load_script
 
-from drift_control.estimator import E, Estimator, LatestSamples, load_estimator_params
+from drift_control.estimator import E, Estimator, LatestSamples, _Monitor, load_estimator_params
 from drift_control.params import ParamError, config_dir, load_vehicle
 from drift_control.signals import Validity, VehicleState
 from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
@@ -143,7 +143,6 @@ def test_the_bias_uncertainty_grows_by_its_walk_however_the_time_is_split():
 def test_the_bias_test_rarely_names_a_consistent_innovation_sequence():
     """Unit normal innovations (a consistent filter) at 100 Hz for 10 minutes: the bias test
     (10 innovations, 4.4) names a bias a handful of times at most, not once a second."""
-    from drift_control.estimator import _Monitor
     mon = _Monitor('ins.V', PARAMS)
     rng = np.random.default_rng(0)
     verdicts = [mon.judge(z * z, z, 0.01 * k) for k, z in enumerate(rng.standard_normal(60_000))]
