@@ -4,10 +4,13 @@
     .venv/bin/python scripts/simulate.py --scenario steady_dry --json out.json
     .venv/bin/python scripts/simulate.py --scenario steady_wet --set surface.mu=0.55 --seed 3
     .venv/bin/python scripts/simulate.py --scenario steady_dry --vehicle gr86
+    .venv/bin/python scripts/simulate.py --scenario alternating_dry --plan-at 25.9 --plan-at 26.3
 
 The loop itself is ``drift_sim.closed_loop.run_closed_loop``; this prints its metrics as JSON.
 ``--controller feedforward`` applies the selected equilibrium's (delta, T_R) open loop: a
-baseline to judge the NMPC against, not a substitute.
+baseline to judge the NMPC against, not a substitute. ``--plan-at`` prints what the NMPC planned
+at those times (its predicted states and inputs next to the reference, every other stage) and
+adds the plans to the JSON, SI units.
 """
 from __future__ import annotations
 
@@ -24,6 +27,34 @@ from drift_control import cli_args
 from drift_control.params import ParamError, config_dir
 from drift_sim.closed_loop import run_closed_loop
 
+
+
+def format_plan(plan: dict, every: int = 2) -> str:
+    """One ``plans`` record as a table: each stage's predicted value (reference in brackets),
+    angles in degrees."""
+    m = plan['measured']
+    lines = [f"NMPC plan at t = {plan['t']:.2f} s (status: {plan['message']})"]
+    if m is not None:
+        lines.append(f"  measured: V {m['V']:.2f} m/s, beta {math.degrees(m['beta']):.1f} deg, "
+                     f"r {m['r']:.2f} rad/s, omega_R {m['omega_R']:.1f} rad/s, delta "
+                     f"{math.degrees(m['delta']):.1f} deg, torque {m['drive_torque']:.0f} Nm")
+    x, u, ref = plan['states'], plan['inputs'], plan['reference']
+    if not x:
+        return '\n'.join(lines + ['  no plan (fallback)'])
+    lines.append('  predicted (reference) per stage; angles in deg; torque: the request')
+    deg = {'beta', 'delta'}
+    lines.append('  stage  ' + '  '.join(f'{k:>15s}' for k in
+                                         ('V', 'beta', 'r', 'omega_R', 'delta', 'T_R')))
+    for k in range(0, len(x['V']), every):
+        cells = []
+        for name in ('V', 'beta', 'r', 'omega_R', 'delta'):
+            f = math.degrees if name in deg else float
+            cells.append(f'{f(x[name][k]):6.2f} ({f(ref[name][k]):6.2f})')
+        T = u['T_R'][min(k, len(u['T_R']) - 1)]
+        T_ref = ref['T_R'][min(k, len(ref['T_R']) - 1)]
+        cells.append(f'{T:6.0f} ({T_ref:6.0f})')
+        lines.append(f'  {k:5d}  ' + '  '.join(cells))
+    return '\n'.join(lines)
 
 
 def main(argv=None) -> int:
@@ -52,6 +83,8 @@ def main(argv=None) -> int:
                         help='override a sensor key (ins.channels.beta.std=0.003)')
     parser.add_argument('--sensor-fault', action='append', default=[], metavar='FAULT',
                         help='unit[.channel]:kind:start:end[:value], e.g. ins:dropout:30:31')
+    parser.add_argument('--plan-at', action='append', default=[], type=cli_args.seconds,
+                        metavar='SECONDS', help='print the NMPC\'s plan at this time (repeat)')
     parser.add_argument('--allow-infeasible', action='store_true',
                         help='run a path that asks for a drift the car cannot hold')
     args = parser.parse_args(argv)
@@ -65,12 +98,15 @@ def main(argv=None) -> int:
                                      refuse_infeasible=not args.allow_infeasible,
                                      sensors=args.sensors, estimator=args.estimator,
                                      sensor_set=args.sensor_set,
-                                     sensor_faults=args.sensor_fault)
+                                     sensor_faults=args.sensor_fault,
+                                     plans_at=args.plan_at)
     except ParamError as err:
         print(f'simulate: {err}', file=sys.stderr)
         return 2
     if args.trace:
         np.savez_compressed(args.trace, **trace)
+    for plan in out.get('plans', ()):
+        print(format_plan(plan), file=sys.stderr)
     out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
            for k, v in out.items()}
     text = json.dumps(out, indent=2, sort_keys=True)

@@ -13,12 +13,13 @@ from drift_sim.closed_loop import run_closed_loop
 
 
 @pytest.mark.slow
-def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path):
+def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path, capsys):
     pytest.importorskip('drift_control.nmpc')
     out = tmp_path / 'metrics.json'
     rc = load_script('simulate').main(['--scenario', 'steady_dry', '--set', 'duration=3.0',
                                        '--quiet', '--json', str(out),
-                                       '--trace', str(tmp_path / 'trace.npz')])
+                                       '--trace', str(tmp_path / 'trace.npz'),
+                                       '--plan-at', '2.5', '--plan-at', '1.01'])
     assert rc == 0
     m = json.loads(out.read_text())
     for key in ('beta_rms_error_deg', 'max_abs_e_y_m', 'spun', 'time_in_drift_s',
@@ -27,6 +28,22 @@ def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path):
     assert m['sim_duration_s'] == pytest.approx(2.99, abs=0.011)
     assert 0.0 < m['solve_time_ms_p50'] <= m['solve_time_ms_p99']
     assert m['commands_lost'] == 0 and math.isfinite(m['real_time_factor'])
+    # --plan-at: the solve nearest each time (sorted), its plan starting at the measured state
+    plans = m['plans']
+    assert [p['t'] for p in plans] == pytest.approx([1.0, 2.5])
+    for p in plans:
+        assert len(p['states']['V']) == 26 and len(p['inputs']['T_R']) == 25
+        assert len(p['reference']['beta']) == 26
+        assert p['states']['V'][0] == p['measured']['V']
+    err = capsys.readouterr().err
+    assert 'NMPC plan at t = 1.00 s' in err and 'NMPC plan at t = 2.50 s' in err
+
+
+def test_a_bad_plan_time_is_one_line_and_exit_2(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        load_script('simulate').main(['--scenario', 'steady_dry', '--plan-at', 'soon'])
+    assert exit_.value.code == 2
+    assert "expected seconds >= 0, got 'soon'" in capsys.readouterr().err
 
 
 def test_a_wrong_override_is_reported_not_raised(capsys):

@@ -45,19 +45,24 @@ class NmpcController:
     scenario's actual one: a ``--set surface.mu=...`` is a friction the controller does not know.
     """
 
-    def __init__(self, setup, supervised: bool = True):
+    def __init__(self, setup, supervised: bool = True, plans_at=()):
         from drift_control.nmpc import STATE_NAMES   # imported when used: heavy
         self.nmpc = setup.build_nmpc(supervised=supervised)
         self.period = setup.nmpc.Ts
         self.trip_time: float | None = None   # when the supervisor latched the fallback [s]
         self._delta_col = STATE_NAMES.index('delta')
         self.plan_delta = math.nan
+        self._plans_at = sorted(plans_at)
+        self.plans: list[dict] = []   # the plans asked for by ``plans_at`` (plan_record)
 
     def step(self, state, ref, now):
         result = self.nmpc.step(state, ref, now)
         # the steering the NMPC plans for the end of its horizon (TORQUE_ONLY: never applied)
         plan = result.predicted_states
         self.plan_delta = float(plan[-1, self._delta_col]) if plan.size else math.nan
+        if self._plans_at and now >= self._plans_at[0] - 0.5 * self.period:
+            self._plans_at.pop(0)
+            self.plans.append(plan_record(now, state, ref, result))
         if self.trip_time is None and 'supervisor:' in result.message:
             self.trip_time = now
         return result.command, result.solve_time_s
@@ -65,6 +70,25 @@ class NmpcController:
     def prepare(self):
         """The NMPC's work for the next cycle that needs no measurement (after the command)."""
         self.nmpc.prepare()
+
+
+def plan_record(now: float, state, ref, result) -> dict:
+    """One NMPC solve as plain lists (SI units): the measured state, the reference row of each
+    stage as the NMPC tracked it, and the predicted states and inputs (diagnosis)."""
+    from drift_control.nmpc import INPUT_NAMES, STATE_NAMES, reference_rows
+    N = len(result.predicted_inputs) or 0
+    rows = reference_rows(ref, N).T.tolist() if ref is not None and N else None
+    names = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta', 'T_R')
+    return {
+        't': now, 'message': result.message,
+        'measured': {k: getattr(state, k) for k in STATE_NAMES + ('drive_torque',)}
+        if state is not None else None,
+        'reference': dict(zip(names, rows)) if rows else {},
+        'states': {k: result.predicted_states[:, i].tolist()
+                   for i, k in enumerate(STATE_NAMES)} if result.predicted_states.size else {},
+        'inputs': {k: result.predicted_inputs[:, i].tolist()
+                   for i, k in enumerate(INPUT_NAMES)} if result.predicted_inputs.size else {},
+    }
 
 
 class SingleTrackSim:
@@ -165,7 +189,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                     vehicle: str | None = None,
                     refuse_infeasible: bool = False, sensors: str | None = None,
                     estimator: str = 'none', sensor_set=(), sensor_faults=(),
-                    estimator_set=()) -> tuple[dict, dict]:
+                    estimator_set=(), plans_at=()) -> tuple[dict, dict]:
     """Run a scenario's closed loop in this process; returns (metrics, time series).
 
     Parameters
@@ -195,6 +219,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     sensor_set, sensor_faults, estimator_set : iterable of str
         ``key=value`` overrides of the sensor set and of ``config/estimator.yaml``; faults as
         ``drift_sim.sensors.parse_fault`` reads them (``ins:dropout:30:31``).
+    plans_at : iterable of float
+        Times [s] at which the NMPC's plan is kept (the first solve within half a control
+        period of each, or after it): the metrics gain ``plans``, one ``plan_record`` each.
     """
     cfg = Path(config) if config else config_dir()
     setup = load_setup(cfg, scenario, vehicle, overrides, seed)
@@ -204,7 +231,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     sc = loaded.scenario
     selector = setup.build_selector()
     ctrl = (Feedforward() if controller == 'feedforward' else
-            NmpcController(setup, supervised))
+            NmpcController(setup, supervised, plans_at))
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, setup.vehicle)
     if sensors is not None:
         sim = SensedSim(sim, setup, cfg, sensors, estimator, sensor_set, sensor_faults,
@@ -288,6 +315,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                overrides=list(overrides), expect_spin=sc.expect_spin,
                commands_lost=sim.commands_lost, plant=plant,
                plant_jit=bool(sim.plant.model and sim.plant.model.jit))
+    if plans_at:
+        out['plans'] = getattr(ctrl, 'plans', [])
     if sensors is not None:
         out.update(sensors=sensors, estimator=estimator, sensor_faults=list(sensor_faults),
                    estimator_summary=sim.summary())
