@@ -50,9 +50,8 @@ def format_plan(plan: dict, every: int = 2) -> str:
         for name in ('V', 'beta', 'r', 'omega_R', 'delta'):
             f = math.degrees if name in deg else float
             cells.append(f'{f(x[name][k]):6.2f} ({f(ref[name][k]):6.2f})')
-        T = u['T_R'][min(k, len(u['T_R']) - 1)]
-        T_ref = ref['T_R'][min(k, len(ref['T_R']) - 1)]
-        cells.append(f'{T:6.0f} ({T_ref:6.0f})')
+        T = u['T_R'][min(k, len(u['T_R']) - 1)]   # N inputs for N + 1 states
+        cells.append(f'{T:6.0f} ({ref["T_R"][k]:6.0f})')
         lines.append(f'  {k:5d}  ' + '  '.join(cells))
     return '\n'.join(lines)
 
@@ -107,6 +106,9 @@ def main(argv=None) -> int:
         np.savez_compressed(args.trace, **trace)
     for plan in out.get('plans', ()):
         print(format_plan(plan), file=sys.stderr)
+    for t in sorted(args.plan_at)[len(out.get('plans', ())):]:
+        print(f'simulate: no NMPC solve at {t:g} s (the run ended at '
+              f"{out['sim_duration_s']:.2f} s)", file=sys.stderr)
     out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
            for k, v in out.items()}
     text = json.dumps(out, indent=2, sort_keys=True)

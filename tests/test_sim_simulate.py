@@ -19,7 +19,8 @@ def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path, capsys):
     rc = load_script('simulate').main(['--scenario', 'steady_dry', '--set', 'duration=3.0',
                                        '--quiet', '--json', str(out),
                                        '--trace', str(tmp_path / 'trace.npz'),
-                                       '--plan-at', '2.5', '--plan-at', '1.01'])
+                                       '--plan-at', '2.5', '--plan-at', '1.01',
+                                       '--plan-at', '9'])
     assert rc == 0
     m = json.loads(out.read_text())
     for key in ('beta_rms_error_deg', 'max_abs_e_y_m', 'spun', 'time_in_drift_s',
@@ -37,6 +38,7 @@ def test_nmpc_closed_loop_runs_and_writes_the_metrics(tmp_path, capsys):
         assert p['states']['V'][0] == p['measured']['V']
     err = capsys.readouterr().err
     assert 'NMPC plan at t = 1.00 s' in err and 'NMPC plan at t = 2.50 s' in err
+    assert 'no NMPC solve at 9 s (the run ended at 2.99 s)' in err
 
 
 def test_a_bad_plan_time_is_one_line_and_exit_2(capsys):

@@ -76,7 +76,7 @@ def plan_record(now: float, state, ref, result) -> dict:
     """One NMPC solve as plain lists (SI units): the measured state, the reference row of each
     stage as the NMPC tracked it, and the predicted states and inputs (diagnosis)."""
     from drift_control.nmpc import INPUT_NAMES, STATE_NAMES, reference_rows
-    N = len(result.predicted_inputs) or 0
+    N = len(result.predicted_inputs)
     rows = reference_rows(ref, N).T.tolist() if ref is not None and N else None
     names = ('V', 'beta', 'r', 'omega_F', 'omega_R', 'delta', 'T_R')
     return {
