@@ -38,3 +38,13 @@ def test_an_error_just_before_the_shutdown_lands_ends_the_run_cleanly(node_env):
     proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
                            'early'], env=node_env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_the_process_ends_with_the_code_close_set_and_its_output_flushed(node_env):
+    """A node process ends right after ``close()`` (no middleware teardown, which once hung
+    until the launcher's SIGKILL): the exit code ``close()`` set and its buffered output stay."""
+    buffered = {k: v for k, v in node_env.items() if k != 'PYTHONUNBUFFERED'}
+    proc = subprocess.run([PYTHON, str(TESTS / 'nodes_for_tests' / 'publish_after_shutdown.py'),
+                           'close'], env=buffered, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 3, proc.stderr[-2000:]
+    assert 'closed: the bag is whole' in proc.stdout

@@ -3,7 +3,8 @@ arriving while a callback runs, made deterministic. ``run_node`` must end it wit
 With the argument ``fail`` the callback raises while the context is up: that must fail the run;
 with ``interrupt`` it raises what a SIGINT inside a C extension becomes (an error caused by a
 KeyboardInterrupt): a clean end again; with ``early`` it raises first and the context goes down
-50 ms later from another thread, as rclpy's signal-handler thread does it: a clean end too."""
+50 ms later from another thread, as rclpy's signal-handler thread does it: a clean end too;
+with ``close`` its ``close()`` prints a line (not flushed) and sets exit code 3."""
 import sys
 import threading
 
@@ -33,6 +34,11 @@ class PublishAfterShutdown(Node):
                 raise SystemError('returned a result with an exception set') from err
         rclpy.shutdown()          # what the SIGINT handler does, between two lines of a callback
         self._pub.publish(Empty())
+
+    def close(self):
+        if 'close' in sys.argv[1:]:
+            print('closed: the bag is whole')   # a pipe: block-buffered, flushed by the exit
+            self.exit_code = 3
 
 
 if __name__ == '__main__':
