@@ -19,7 +19,7 @@ from pathlib import Path
 
 from drift_control import cli_args
 from drift_control.assembly import load_setup
-from drift_control.params import ParamError, config_dir, split_override, vehicle_file
+from drift_control.params import ParamError, config_dir, parse_yaml, split_override, vehicle_file
 from drift_tools.launcher import Launcher
 from drift_control.estimator import ESTIMATORS
 from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, SIM_MODULE,
@@ -42,7 +42,7 @@ def node_overrides(items, nodes) -> dict:
         if node not in names:
             raise ParamError(f'-p {item!r}: no node {node!r} in this graph; have {sorted(names)}')
         try:
-            value = yaml.safe_load(text) if text else ''
+            value = parse_yaml(text) if text else ''
         except yaml.YAMLError:
             raise ParamError(f'-p {item!r}: VALUE is not YAML') from None
         if value is None or isinstance(value, dict):

@@ -65,9 +65,13 @@ def test_jobs_through_the_sensors_and_estimator_carry_them_into_key_row_and_repl
     assert sensed.overrides == plain.overrides and sensed.key != plain.key
     assert (sensed.row()['sensors'], sensed.row()['estimator']) == ('realistic', 'ekf')
     assert 'sensors' not in plain.row()
+    assert sensed.sensor_set and sensed.row()['sensor_set'] == list(sensed.sensor_set)
     words = shlex.split(sensed.replay_command())
     assert words[words.index('--sensors') + 1] == 'realistic'
     assert words[words.index('--estimator') + 1] == 'ekf'
+    # the draw's sensor noise rides along: the replay runs the same sensor units
+    assert [words[i + 1] for i, w in enumerate(words) if w == '--sensor-set'] == \
+        list(sensed.sensor_set)
     with pytest.raises(ParamError, match="'kalman' is not one of"):
         campaign_jobs(['steady_dry'], ['gr86'], [0], sensors='realistic', estimator='kalman')
 

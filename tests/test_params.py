@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from drift_control.params import (ParamError, VehicleParams, config_dir, from_dict, load_surface,
-                                  load_vehicle, params_hash)
+                                  load_vehicle, load_yaml, params_hash, split_override)
 
 
 @pytest.fixture()
@@ -53,3 +53,13 @@ def test_parameter_hash_tracks_values(raw):
     b = from_dict(VehicleParams, raw, 'vehicle')
     assert params_hash(a) == params_hash(load_vehicle())
     assert params_hash(a) != params_hash(b)
+
+
+@pytest.mark.parametrize('text, value', [('5e-05', 5e-05), ('-2.5E+2', -250.0), ('1.5e3', 1500.0),
+                                         ('3', 3), ('12e', '12e'), ('e5', 'e5')])
+def test_a_number_in_exponent_form_is_a_number_in_files_and_overrides(tmp_path, text, value):
+    """YAML 1.1 reads ``5e-05`` (how Python writes 0.00005) as a string without the dot."""
+    assert split_override(f'a.b={text}') == ('a.b', value)
+    file = tmp_path / 'x.yaml'
+    file.write_text(f'a: {text}\n')
+    assert load_yaml(file) == {'a': value}

@@ -4,6 +4,7 @@ import pytest
 from drift_control.params import ParamError, vehicle_names
 from drift_sim.population import draw, load_population
 from drift_sim.scenario import load_scenario
+from drift_sim.sensors import load_sensor_params
 
 # the issue's ranges, the same for every car: (kind, low, high) per parameter
 ISSUE_RANGES = {
@@ -79,6 +80,24 @@ def test_a_draw_is_a_plant_the_simulator_accepts():
     assert loaded.mu == pytest.approx(float(got['surface.mu']))
 
 
+def test_the_noise_draw_reaches_the_sensor_units_only_in_runs_that_have_them():
+    plain = draw(load_population('gr86', 'steady_dry'), 4, seed=1)
+    sensed = draw(load_population('gr86', 'steady_dry', sensors='realistic'), 4, seed=1)
+    assert sensed.overrides == plain.overrides and sensed.values == plain.values
+    assert plain.sensor_set == ()
+    factor = 1.0 + sensed.values['sensor_noise']
+    nominal = load_sensor_params('realistic')
+    got = dict(item.split('=') for item in sensed.sensor_set)
+    assert float(got['ins.channels.beta.std']) == pytest.approx(
+        factor * nominal.ins.channels['beta'].std, rel=1e-5)
+    assert float(got['wheels.channels.RL.std']) == pytest.approx(
+        factor * nominal.wheels.channels['RL'].std, rel=1e-5)
+    assert not any('gm_std' in k or 'bias' in k for k in got)   # the white noise only
+    drawn = load_sensor_params('realistic', overrides=sensed.sensor_set)
+    assert drawn.imu.channels['r'].std == pytest.approx(factor * nominal.imu.channels['r'].std,
+                                                        rel=1e-5)
+
+
 BAD = [
     ('parameters: {mass: {keys: [plant.body.m], relative: [-0.1, 0.1]}}',
      'parameters.mass.why'),
@@ -87,7 +106,11 @@ BAD = [
     ('parameters: {mass: {keys: [plant.body.mass], relative: [-0.1, 0.1], why: x}}',
      'plant.body.mass names no number'),
     ('parameters: {mass: {keys: [vehicle.m], relative: [-0.1, 0.1], why: x}}',
-     'only plant.* keys'),
+     'only plant.* and sensors.* keys'),
+    ('parameters: {noise: {keys: [sensors.ins.channels.speed.std], relative: [0, 1], why: x}}',
+     'sensors.ins.channels.speed.std names no number of the sensor units'),
+    ('parameters: {noise: {keys: [sensors.ins.channels.V.std], offset: [-1, 0], why: x}}',
+     'parameters.noise at u = -1: sensors.ins.channels.V: std must be >= 0'),
     ('parameters: {lsd: {keys: [plant.lsd.locking], absolute: [0.5, 1.5], why: x}}',
      'parameters.lsd at u = 1.5: plant.lsd.locking'),
     ('parameters: {mass: {keys: [plant.body.m], relative: [-1.0, 0.1], why: x}}', 'above -1'),

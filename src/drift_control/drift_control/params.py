@@ -10,6 +10,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import typing
 from dataclasses import MISSING, asdict, dataclass, fields, is_dataclass
 from pathlib import Path
@@ -63,12 +64,27 @@ def _share_dir() -> Path | None:
         return None
 
 
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that also reads ``5e-05`` as a number: YAML 1.1 wants a dot in the
+    mantissa (``5.0e-05``) and gives the string '5e-05', which Python's own ``repr`` writes."""
+
+
+YamlLoader.add_implicit_resolver(
+    'tag:yaml.org,2002:float', re.compile(r'^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$'),
+    list('-+0123456789'))
+
+
+def parse_yaml(text) -> Any:
+    """``yaml.safe_load`` with ``YamlLoader``'s numbers; raises ``yaml.YAMLError``."""
+    return yaml.load(text, Loader=YamlLoader)   # noqa: S506 - a SafeLoader
+
+
 def load_yaml(path: str | os.PathLike) -> dict:
     """Read a YAML mapping; a missing file, bad YAML or a non-mapping is a ParamError."""
     path = Path(path)
     try:
         with open(path, encoding='utf-8') as fh:
-            raw = yaml.safe_load(fh)
+            raw = parse_yaml(fh)
     except FileNotFoundError:
         raise ParamError(f'{path}: parameter file not found') from None
     except yaml.YAMLError as err:
@@ -172,7 +188,7 @@ def split_override(item: str) -> tuple[str, object]:
     if not key.strip():
         raise ParamError(f'override {item!r}: expected key=value')
     try:
-        value = yaml.safe_load(text)
+        value = parse_yaml(text)
     except yaml.YAMLError as err:
         raise ParamError(f'override {item!r}: value is not valid YAML: {err}') from None
     return key.strip(), value

@@ -43,6 +43,7 @@ class Job:
     config: str | None = None         # config directory; None: the checkout's
     sensors: str = ''                 # the car's sensor units ('realistic'); '': plant's noise
     estimator: str = ''               # with sensors: 'ekf' or 'none'
+    sensor_set: tuple[str, ...] = ()  # with sensors: the draw's sensor overrides
 
     @property
     def key(self) -> str:
@@ -51,7 +52,7 @@ class Job:
         fields = [self.scenario, self.vehicle, self.seed, list(self.overrides), self.draw,
                   self.plant_seed, self.config]
         if self.sensors:
-            fields += [self.sensors, self.estimator]
+            fields += [self.sensors, self.estimator, list(self.sensor_set)]
         return hashlib.sha256(json.dumps(fields).encode()).hexdigest()[:16]
 
     def replay_command(self) -> str:
@@ -64,6 +65,8 @@ class Job:
             words += ['--config-dir', self.config]
         if self.sensors:
             words += ['--sensors', self.sensors, '--estimator', self.estimator or 'none']
+            for item in self.sensor_set:
+                words += ['--sensor-set', item]
         return ' '.join(shlex.quote(w) for w in words)
 
     def row(self) -> dict:
@@ -72,8 +75,8 @@ class Job:
                 'seed': self.seed, 'draw': self.draw, 'plant_seed': self.plant_seed,
                 'overrides': list(self.overrides), 'values': dict(self.values),
                 'config': self.config, 'replay': self.replay_command(),
-                **({'sensors': self.sensors, 'estimator': self.estimator} if self.sensors
-                   else {})}
+                **({'sensors': self.sensors, 'estimator': self.estimator,
+                    'sensor_set': list(self.sensor_set)} if self.sensors else {})}
 
 
 def scenario_vehicle(scenario: str, overrides=(), config=None) -> str:
@@ -127,20 +130,22 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
                     runs.setdefault((None, seed), []).append(
                         Job(scenario, vehicle, seed, overrides, config=config, **sensed))
                 continue
-            population = load_population(vehicle, scenario, overrides, config)
+            population = load_population(vehicle, scenario, overrides, config, sensors=sensors)
             for index in range(plants):
                 plant = draw(population, index, plant_seed)
                 for seed in seeds:
                     runs.setdefault((index, seed), []).append(
                         Job(scenario, vehicle, seed, overrides + plant.overrides, index,
-                            plant_seed, plant.values, config, **sensed))
+                            plant_seed, plant.values, config, **sensed,
+                            sensor_set=plant.sensor_set))
     return [job for batch in runs.values() for job in batch]
 
 
 def run_job(job: Job) -> dict:
     """Run one job in this process: its store row (``outcome`` is drift_sim.sweep's)."""
     metrics, wall = run_seed(job.scenario, job.overrides, job.seed, job.config,
-                             vehicle=job.vehicle, sensors=job.sensors, estimator=job.estimator)
+                             vehicle=job.vehicle, sensors=job.sensors, estimator=job.estimator,
+                             sensor_set=job.sensor_set)
     return {**job.row(), 'outcome': outcome(metrics), 'wall_s': wall,
             'host': socket.gethostname(), 'finished': time.time(), 'metrics': metrics}
 

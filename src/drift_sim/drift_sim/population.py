@@ -2,7 +2,9 @@
 
 A population says how far a car may be from its nominal plant (``config/sim/plants/<vehicle>.
 yaml``): each parameter is a uniform range, relative to the nominal value, an offset from it or
-an absolute value, and names the plant keys it moves (``plant.body.m``) or ``surface.mu``.
+an absolute value, and names the plant keys it moves (``plant.body.m``), ``surface.mu`` or the
+keys of the car's sensor units (``sensors.ins.channels.beta.std``, ``config/sim/sensors/``):
+those apply in runs with the sensor units only (``load_population(sensors=...)``).
 
     population = load_population('gr86', scenario='steady_dry')
     plant = draw(population, index=7, seed=0)     # Draw(overrides, values)
@@ -16,7 +18,7 @@ from __future__ import annotations
 import fnmatch
 import os
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,9 +27,12 @@ import numpy as np
 from drift_control.params import ParamError, config_dir, load_surface, load_yaml, merge
 from drift_control.scenario import load_scenario_spec, surface_mu
 from drift_sim.params import load_plant_params, plant_yaml
+from drift_sim.sensors import load_sensor_params, sensors_file
 
 KINDS = ('relative', 'offset', 'absolute')   # nominal x (1 + u), nominal + u, u
 SURFACE_MU = 'surface.mu'                    # the one drawn key outside the plant file
+SENSORS = 'sensors.'                         # prefix of the sensor units' keys
+DEFAULT_SENSORS = 'realistic'                # the set a population's sensor keys are checked on
 
 
 @dataclass(frozen=True)
@@ -51,6 +56,7 @@ class Population:
     ranges: tuple[Range, ...]
     nominal: dict            # dotted key -> nominal value of every drawn key
     not_modelled: dict       # parameter -> why it has no plant key and is not drawn
+    sensors: str = ''        # the sensor set its ``sensors.`` keys apply to; '': none apply
 
 
 class Draw(NamedTuple):
@@ -58,6 +64,7 @@ class Draw(NamedTuple):
 
     overrides: tuple[str, ...]   # ``key=value`` strings for ``run_closed_loop``
     values: dict                 # parameter name -> drawn ``u`` in its range's units
+    sensor_set: tuple[str, ...] = ()   # ``unit.channels.x.std=value``: its ``sensor_set``
 
 
 def population_file(vehicle: str, config: str | os.PathLike | None = None) -> Path:
@@ -67,7 +74,7 @@ def population_file(vehicle: str, config: str | os.PathLike | None = None) -> Pa
 
 def load_population(vehicle: str, scenario: str | None = None, overrides=(),
                     config: str | os.PathLike | None = None,
-                    file: str | os.PathLike | None = None) -> Population:
+                    file: str | os.PathLike | None = None, sensors: str = '') -> Population:
     """Load and check a vehicle's population; every error names the file and the key.
 
     Parameters
@@ -80,6 +87,10 @@ def load_population(vehicle: str, scenario: str | None = None, overrides=(),
         (``load_setup``'s default surface).
     file : path, optional
         Another population file (default ``population_file(vehicle, config)``).
+    sensors : str, optional
+        The runs' sensor set (``config/sim/sensors/<name>.yaml``): the ``sensors.`` keys are
+        drawn relative to its values. Without one they are checked on ``DEFAULT_SENSORS`` and
+        not drawn (the plant's measurement model stands in for the sensor units).
     """
     config = Path(config or config_dir())
     file = Path(file) if file else population_file(vehicle, config)
@@ -88,6 +99,8 @@ def load_population(vehicle: str, scenario: str | None = None, overrides=(),
     where = file.name
     params, not_modelled = _read(file)
     plant_raw, nominal = _nominal(vehicle, scenario, overrides, config)
+    nominal.update(_numeric_leaves(load_yaml(sensors_file(sensors or DEFAULT_SENSORS, config)),
+                                   SENSORS.rstrip('.')))
     ranges = tuple(_range(name, raw, nominal, f'{where}: parameters.{name}')
                    for name, raw in params.items())
     drawn_by: dict[str, str] = {}
@@ -98,9 +111,16 @@ def load_population(vehicle: str, scenario: str | None = None, overrides=(),
                                  f'{drawn_by[key]} already')
             drawn_by[key] = r.name
     population = Population(vehicle, file, ranges, {k: nominal[k] for k in drawn_by},
-                            not_modelled)
-    _check_ends(population, plant_raw, where)
-    return population
+                            not_modelled, sensors or DEFAULT_SENSORS)
+    _check_ends(population, plant_raw, where, config)
+    if sensors:
+        return population
+    # checked, but not drawn: these runs have no sensor units
+    ranges = tuple(replace(r, keys=tuple(k for k in r.keys if not k.startswith(SENSORS)))
+                   for r in ranges)
+    return replace(population, ranges=ranges, sensors='',
+                   nominal={k: v for k, v in population.nominal.items()
+                            if not k.startswith(SENSORS)})
 
 
 def _read(file: Path) -> tuple[dict, dict]:
@@ -142,14 +162,18 @@ def draw(population: Population, index: int, seed: int = 0) -> Draw:
     """
     if index < 0 or seed < 0:
         raise ValueError(f'draw: index and seed must be >= 0, got {index}, {seed}')
-    overrides, values = [], {}
+    overrides, sensor_set, values = [], [], {}
     for r in population.ranges:
         rng = np.random.default_rng([seed, index, zlib.crc32(r.name.encode())])
         u = float(f'{rng.uniform(r.low, r.high):.6g}')
         values[r.name] = u
-        overrides += [f'{key}={_apply(r.kind, population.nominal[key], u):.6g}'
-                      for key in r.keys]
-    return Draw(tuple(overrides), values)
+        for key in r.keys:
+            item = f'{key}={_apply(r.kind, population.nominal[key], u):.6g}'
+            if key.startswith(SENSORS):
+                sensor_set.append(item.removeprefix(SENSORS))
+            else:
+                overrides.append(item)
+    return Draw(tuple(overrides), values, tuple(sensor_set))
 
 
 def _apply(kind: str, nominal: float, u: float) -> float:
@@ -196,21 +220,24 @@ def _range(name: str, raw, leaves: dict, where: str) -> Range:
     patterns = raw.get('keys')
     if not isinstance(patterns, list) or not patterns or not all(isinstance(p, str)
                                                                  for p in patterns):
-        raise ParamError(f'{where}.keys: expected a list of plant.* keys or {SURFACE_MU}')
+        raise ParamError(f'{where}.keys: expected a list of plant.* or {SENSORS}* keys or '
+                         f'{SURFACE_MU}')
     keys = []
     for pattern in patterns:
-        if not (pattern.startswith('plant.') or pattern == SURFACE_MU):
-            raise ParamError(f'{where}.keys: {pattern}: only plant.* keys and {SURFACE_MU} '
-                             'are drawn')
+        if not (pattern.startswith(('plant.', SENSORS)) or pattern == SURFACE_MU):
+            raise ParamError(f'{where}.keys: {pattern}: only plant.* and {SENSORS}* keys and '
+                             f'{SURFACE_MU} are drawn')
         found = sorted(k for k in leaves if fnmatch.fnmatchcase(k, pattern))
         if not found:
-            raise ParamError(f'{where}.keys: {pattern} names no number of the plant')
+            what = 'the sensor units' if pattern.startswith(SENSORS) else 'the plant'
+            raise ParamError(f'{where}.keys: {pattern} names no number of {what}')
         keys += found
     return Range(name, tuple(keys), kind, float(bounds[0]), float(bounds[1]), why.strip())
 
 
-def _check_ends(population: Population, plant_raw: dict, where: str) -> None:
-    """Each range's two ends must give a plant the plant's own validation accepts."""
+def _check_ends(population: Population, plant_raw: dict, where: str, config: Path) -> None:
+    """Each range's two ends must give a plant (and sensor units) their own validation
+    accepts."""
     for r in population.ranges:
         for u in (r.low, r.high):
             values = {k: _apply(r.kind, population.nominal[k], u) for k in r.keys}
@@ -218,12 +245,17 @@ def _check_ends(population: Population, plant_raw: dict, where: str) -> None:
             if mu is not None and not 0.0 < mu <= 2.0:
                 raise ParamError(f'{where}: parameters.{r.name}: {SURFACE_MU}={mu:g} at '
                                  f'u = {u:g} is outside (0, 2]')
-            items = [f'{k.removeprefix("plant.")}={v!r}' for k, v in values.items()]
+            items = [f'{k.removeprefix("plant.")}={v!r}' for k, v in values.items()
+                     if k.startswith('plant.')]
+            sensed = [f'{k.removeprefix(SENSORS)}={v!r}' for k, v in values.items()
+                      if k.startswith(SENSORS)]
             try:
                 load_plant_params(plant_raw, items)
+                if sensed:
+                    load_sensor_params(population.sensors, config, sensed)
             except ParamError as err:
                 raise ParamError(f'{where}: parameters.{r.name} at u = {u:g}: {err}') from None
 
 
-__all__ = ['Draw', 'KINDS', 'Population', 'Range', 'draw', 'load_population',
-           'population_file']
+__all__ = ['DEFAULT_SENSORS', 'Draw', 'KINDS', 'Population', 'Range', 'SENSORS', 'draw',
+           'load_population', 'population_file']

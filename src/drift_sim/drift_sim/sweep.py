@@ -52,7 +52,7 @@ def parse_seeds(text: str) -> list[int]:
 
 def run_seed(scenario: str, overrides=(), seed: int | None = None,
              config: str | None = None, vehicle: str | None = None, sensors: str = '',
-             estimator: str = '') -> tuple[dict, float]:
+             estimator: str = '', sensor_set=()) -> tuple[dict, float]:
     """One ``run_closed_loop`` for a sweep: (metrics, wall seconds).
 
     An exception becomes ``{'error': ...}`` (one broken run must not lose the others) and NaN
@@ -60,15 +60,16 @@ def run_seed(scenario: str, overrides=(), seed: int | None = None,
     where on the path the car spun, the supervisor tripped, or else the lateral error after
     the entry was largest; and ``torque_std_Nm``, ``torque_change_Nm``: the torque request's
     std and mean change per control period in the steady windows. The supervisor's trip
-    messages are silenced: the outcome says them. ``sensors``, ``estimator``: as
-    ``run_closed_loop``'s ('': the plant's measurement model). Meant for worker processes; it
+    messages are silenced: the outcome says them. ``sensors``, ``estimator``, ``sensor_set``:
+    as ``run_closed_loop``'s ('': the plant's measurement model). Meant for worker processes; it
     imports the closed loop on first use.
     """
     from drift_sim.closed_loop import run_closed_loop
     logging.disable(logging.ERROR)
     t0 = time.perf_counter()
     try:
-        extra = {'sensors': sensors, 'estimator': estimator or 'none'} if sensors else {}
+        extra = {'sensors': sensors, 'estimator': estimator or 'none',
+                 'sensor_set': tuple(sensor_set)} if sensors else {}
         metrics, log = run_closed_loop(scenario, overrides, seed=seed, config=config,
                                        vehicle=vehicle, **extra)
         metrics.update(_event(metrics, log))
