@@ -23,6 +23,13 @@ def stop(signum, frame):
 signal.signal(signal.SIGTERM, stop)
 if mode == "ignore":
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+if mode == "hang":   # a node process (stops.install) whose stop never comes through
+    from drift_control.nodes import stops
+    stops.install()
+    def stuck_in_a_callback():
+        time.sleep(3600)
+    print("up", flush=True)
+    stuck_in_a_callback()
 print("up", flush=True)   # its SIGTERM handling is in place
 if mode in ("crash", "finish"):
     time.sleep(delay)
@@ -107,6 +114,14 @@ def test_a_node_ignoring_sigterm_is_killed_and_fails_the_run():
     assert outcome.killed == ['stubborn'] and not outcome.ok and outcome.exit_code == 1
     assert 1.1 <= elapsed < 4.0
     assert any('SIGKILL' in line for line in lines)
+
+
+def test_a_hung_node_logs_its_stacks_before_the_sigkill():
+    outcome, _, lines = run([('hung', child('hang'), False)], duration=0.3, kill_timeout=0.5)
+    assert outcome.killed == ['hung'] and not outcome.ok
+    text = '\n'.join(lines)
+    assert 'its stacks, then SIGKILL' in text
+    assert 'in stuck_in_a_callback' in text, text   # the hung frame, named in the log
 
 
 def test_second_interrupt_kills_without_waiting():

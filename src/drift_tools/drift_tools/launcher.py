@@ -3,7 +3,9 @@
 No rclpy here: each node is its own OS process, started in its own session so a terminal's Ctrl-C
 reaches only the launcher, which stops the nodes with SIGTERM in a defined order (recorders last)
 and escalates to SIGKILL after a timeout. SIGTERM, not SIGINT: CasADi polls and clears a pending
-SIGINT inside its calls (the simulator building its plant), so a SIGINT could be lost.
+SIGINT inside its calls (the simulator building its plant), so a SIGINT could be lost. Before the
+SIGKILL a node gets ``DUMP_SIGNAL``: the node processes print every thread's Python stack on it
+(``drift_control.nodes.stops``), so the log says where it hung.
 """
 from __future__ import annotations
 
@@ -18,12 +20,14 @@ import time
 from dataclasses import dataclass, field
 
 from drift_control.nodes.priority import leave_launch_real_time
+from drift_control.nodes.stops import DUMP_SIGNAL   # a node prints its threads' stacks on it
 
 logger = logging.getLogger(__name__)
 
 COLOURS = (36, 33, 35, 32, 34, 91, 96, 93)   # ANSI foreground codes, one per node
 _PR_SET_PDEATHSIG = 1
 STOP_SIGNAL = signal.SIGTERM
+DUMP_WAIT_S = 0.5              # for the stacks to reach the log before the SIGKILL [s]
 # what a node may return after our stop signal (or a terminal's SIGINT)
 CLEAN_EXIT_CODES = (0, -signal.SIGINT, 130, -signal.SIGTERM, 128 + signal.SIGTERM)
 
@@ -207,9 +211,12 @@ class Launcher:
                         and time.monotonic() < deadline:
                     time.sleep(0.02)
                 if p.popen.poll() is None:
-                    why = 'second interrupt' if self._kill_now else \
-                        f'no exit {self._kill_timeout:g} s after SIGTERM'
-                    self._say(f'{p.name}: {why}: SIGKILL')
+                    if self._kill_now:
+                        self._say(f'{p.name}: second interrupt: SIGKILL')
+                    else:
+                        self._say(f'{p.name}: no exit {self._kill_timeout:g} s after SIGTERM: '
+                                  f'its stacks, then SIGKILL')
+                        self._dump_stacks(p)
                     p.popen.kill()
                     p.popen.wait()
                     outcome.killed.append(p.name)
@@ -218,6 +225,15 @@ class Launcher:
                 p.reader.join(timeout=2.0)
             outcome.returncodes[p.name] = p.popen.returncode
         return outcome
+
+    def _dump_stacks(self, p: Proc) -> None:
+        """Ask a hung node for its threads' stacks (``DUMP_SIGNAL``) and give them time to be
+        logged; a process without the handler dies of the signal instead."""
+        try:
+            p.popen.send_signal(DUMP_SIGNAL)
+        except ProcessLookupError:
+            return
+        time.sleep(DUMP_WAIT_S)
 
     def _say(self, text: str) -> None:
         prefix = '\033[1m[launch]\033[0m ' if self._colour else '[launch] '

@@ -5,13 +5,17 @@ numpy, rclpy) and then builds itself (the simulator compiles its plant). A SIGIN
 raised a KeyboardInterrupt that some import swallowed, or met rclpy's handler, which only wakes
 an executor already spinning: the stop was lost and the launcher killed the node 8 s later.
 So SIGINT and SIGTERM only append to ``STOPS``; ``spin.run_node`` ends the spin on it.
+SIGUSR1 prints every thread's Python stack to stderr (``faulthandler``, which needs no GIL): the
+launcher sends it to a node that does not stop, before its SIGKILL.
 """
 from __future__ import annotations
 
+import faulthandler
 import signal
 import sys
 
 STOPS: list[int] = []
+DUMP_SIGNAL = signal.SIGUSR1   # prints every thread's stack (the launcher's, before a SIGKILL)
 
 
 def _remember(signum, frame) -> None:
@@ -19,9 +23,11 @@ def _remember(signum, frame) -> None:
 
 
 def install() -> None:
-    """Remember SIGINT and SIGTERM instead of raising (the main thread only)."""
+    """Remember SIGINT and SIGTERM instead of raising, print the stacks on ``DUMP_SIGNAL``
+    (the main thread only)."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _remember)
+    faulthandler.register(DUMP_SIGNAL, all_threads=True, chain=False)
 
 
 def install_if_node_process() -> None:
