@@ -88,11 +88,9 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
 def end_process(code: int) -> None:
     """End this process now with ``code``: stdio flushed, no interpreter or middleware teardown.
 
-    What a node owns is released by its ``close()``; what is left is the DDS teardown (the
-    node's entities, its participant, the middleware's static objects and threads). That
-    teardown hung once, after a clean stop, until the launcher's SIGKILL 8 s later (a lock-step
-    run failed with exit -9 in CI; not reproduced in 100 runs here). Peers see the participant
-    go when its lease ends instead of at once; every node of a run stops with it anyway.
+    What a node owns is released by its ``close()``; what is left is the DDS teardown (its
+    entities, participant, static objects and threads), which can hang after a clean stop until
+    the launcher's SIGKILL. Peers see the participant go when its lease ends, not at once.
     """
     for stream in (sys.stdout, sys.stderr):
         try:
