@@ -2,8 +2,8 @@
 
 Discovery is not symmetric: a subscription (the recorder's) can be matched with a publisher, and
 the graph can list it, while that publisher has not matched the subscription yet. What a
-reliable, volatile publisher sends in that gap never reaches it: a lock-step bag once lacked its
-first three commands and NMPC statuses. Lock-step nodes wait for their publishers' side too.
+reliable, volatile publisher sends in that gap never reaches it (a bag without the run's first
+commands), so lock-step nodes wait for their publishers' side too.
 """
 from __future__ import annotations
 
