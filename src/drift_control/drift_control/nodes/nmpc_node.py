@@ -21,7 +21,6 @@ from drift_control.estimator import FrameStepper, build_estimator
 from drift_control.nmpc import LockstepTrigger
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
-from drift_control.nodes.matching import MATCH_TIMEOUT_S, wait_publishers_matched
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.estimator_node import StepperLog, estimator_status
@@ -63,7 +62,6 @@ class NmpcNode(Node):
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
         self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        self._outputs = [self._cmd_pub, self._status_pub]   # the loop's, which a bag keeps
         self._stepper = None
         if source == 'sensors':
             self._in_process(setup, build_estimator(kind, setup.vehicle,
@@ -73,7 +71,6 @@ class NmpcNode(Node):
         # under sim time the simulator waits for us: wait for the reference of this very state
         # (deterministic); in real time at most a few ms, so a late reference never stalls us
         sim_time = self._sim_time = self.get_parameter('use_sim_time').value
-        self._unmatched = sim_time   # lock-step: the first output waits for its matches
         wait = LOCKSTEP_REFERENCE_WAIT if sim_time else REALTIME_REFERENCE_WAIT
         self._trigger = LockstepTrigger(params.Ts, wait, first_reference=sim_time) \
             if trigger == 'state' else None
@@ -111,7 +108,6 @@ class NmpcNode(Node):
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
         self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
-        self._outputs += [self._state_pub, self._ref_pub]
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.create_publisher(PathMsg, 'drift/path', latched).publish(
@@ -134,7 +130,6 @@ class NmpcNode(Node):
         self._log(self._stepper, self._epoch)
         if state is None:
             return
-        self._match_outputs()
         if repeated:   # offered again (a lock-step start): answer again, for a late joiner
             if self._answer is not None and self._gate.last == t:
                 command, ref = self._answer
@@ -183,16 +178,6 @@ class NmpcNode(Node):
         if self._trigger and self._trigger.on_reference(ref.stamp):
             self._on_tick()
 
-    def _match_outputs(self):
-        """Sim time, once, before the first output: wait until our publishers have matched
-        every subscription the graph lists (``nodes.matching``; the simulator waits for us)."""
-        if self._unmatched:
-            self._unmatched = False
-            if not wait_publishers_matched(self, self._outputs, MATCH_TIMEOUT_S):
-                self.get_logger().warning(
-                    f'outputs not matched with every subscription within {MATCH_TIMEOUT_S:g} s '
-                    '(a subscriber with incompatible QoS?): publishing anyway')
-
     def _clock_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
@@ -210,7 +195,6 @@ class NmpcNode(Node):
                 now = Time(nanoseconds=int(round(stamp * 1e9)), clock_type=now.clock_type)
             self._wait.cancel()
         result = self._nmpc.step(self._state, self._ref, now.nanoseconds * 1e-9)
-        self._match_outputs()
         self._cmd_pub.publish(convert.command_to_msg(result.command, now))
         self._status_pub.publish(convert.status_to_msg(result, now))
         self._last = result

@@ -13,7 +13,6 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 
 from drift_control.assembly import load_setup
 from drift_control.nodes import convert
-from drift_control.nodes.matching import MATCH_TIMEOUT_S, wait_publishers_matched
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.spin import run_node
@@ -42,8 +41,6 @@ class ReferenceNode(Node):
         self._state, self._fresh = None, False
         self._gate = PeriodGate(params.period)   # trigger: state
         self._last_ref = None
-        # lock-step: the first reference waits for its publisher's matches (nodes.matching)
-        self._unmatched = trigger == 'state' and self.get_parameter('use_sim_time').value
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
@@ -86,12 +83,6 @@ class ReferenceNode(Node):
         ref = self._selector.select(self._state)
         if ref is not None:
             self._last_ref = convert.reference_to_msg(ref)
-            if self._unmatched:
-                self._unmatched = False
-                if not wait_publishers_matched(self, [self._ref_pub], MATCH_TIMEOUT_S):
-                    self.get_logger().warning(
-                        f'drift/reference not matched with every subscription within '
-                        f'{MATCH_TIMEOUT_S:g} s (a subscriber with incompatible QoS?)')
             self._ref_pub.publish(self._last_ref)
 
 
