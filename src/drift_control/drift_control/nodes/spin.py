@@ -7,7 +7,7 @@ import os
 import signal
 import sys
 import time
-from typing import Callable
+from typing import Callable, NoReturn
 
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -25,9 +25,9 @@ SHUTDOWN_GRACE_S = 0.5
 STOP_POLL_S = 0.1   # a signal ends the spin at the latest this long after it came [s]
 
 
-def run_node(factory: Callable[[], Node], name: str, args=None,
-             exit_process: bool = True) -> int:
-    """Build the node with ``factory`` and spin it until it is stopped; returns the exit code.
+def run_node(factory: Callable[[], Node], name: str, args=None) -> NoReturn:
+    """Build the node with ``factory``, spin it until it is stopped and end the process with
+    its exit code.
 
     SIGINT and SIGTERM are ours, not rclpy's (``drift_control.nodes.stops``): a stop is
     remembered whenever it comes, from the node module's first import on, and ends the spin
@@ -42,8 +42,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     node's ``close()``, if it has one, runs before the node is destroyed (flush a bag, release a
     CAN bus); a node that sets ``exit_code`` there (a recording that failed) exits with it.
 
-    With ``exit_process`` (a node process) the process ends right after ``close()``, through
-    ``end_process``, without the middleware's teardown: see there why.
+    A node process ends right after ``close()``, through ``end_process``, without the
+    middleware's teardown (see there why); only an error that is raised returns.
     """
     stops.install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -77,15 +77,14 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
             if close is not None:
                 close()
             code = code or int(getattr(node, 'exit_code', 0) or 0)
-        if exit_process and ended:
+        if ended:
             end_process(code)
-        if node is not None:
+        if node is not None:   # a failure on its way up: the usual teardown, then its traceback
             node.destroy_node()
         rclpy.try_shutdown()
-    return code
 
 
-def end_process(code: int) -> None:
+def end_process(code: int) -> NoReturn:
     """End this process now with ``code``: stdio flushed, no interpreter or middleware teardown.
 
     What a node owns is released by its ``close()``; what is left is the DDS teardown (its
