@@ -18,6 +18,11 @@ STACK_TOPICS = {
     'sim/state': ('drift_msgs/msg/VehicleState', False),
     '/rosout': ('rcl_interfaces/msg/Log', True),   # every node's log lines (transient local)
 }
+# The loop's topics, published with a short transient-local history (drift_control.nodes.qos):
+# subscribed transient local from the start, a publisher that matches the recorder late still
+# delivers the run's first messages.
+KEPT_TOPICS = frozenset({'vehicle/state', 'vehicle/sensors', 'drift/reference', 'drift/command',
+                         'drift/nmpc/status', '/clock', 'sim/state'})
 STACK_NAMESPACES = ('vehicle', 'drift', 'sim')
 NEVER = ('/parameter_events',)
 

@@ -10,6 +10,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from drift_control.assembly import load_setup
 from drift_control.estimator import FrameStepper, build_estimator
 from drift_control.nodes import convert
+from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.spin import run_node
@@ -33,9 +34,7 @@ class EstimatorNode(Node):
         self._epoch = None      # whole seconds taken off every stamp (wall-clock stamps)
         self._log = StepperLog(self.get_logger())
         reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)   # every frame
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state',
-                                                QoSProfile(depth=10,
-                                                           reliability=ReliabilityPolicy.RELIABLE))
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(SensorSamples, 'vehicle/sensors', self._on_samples, reliable)
         self.create_timer(1.0, self._publish_diagnostics)

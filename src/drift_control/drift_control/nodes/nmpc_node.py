@@ -21,6 +21,7 @@ from drift_control.estimator import FrameStepper, build_estimator
 from drift_control.nmpc import LockstepTrigger
 from drift_control.nmpc import NmpcStatus as Status
 from drift_control.nodes import convert
+from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.estimator_node import StepperLog, estimator_status
@@ -58,9 +59,8 @@ class NmpcNode(Node):
         mode = mode or (setup.scenario.control_mode if setup.scenario else 'full')
         self._nmpc = setup.build_nmpc(MODES[mode])
         self._state = self._ref = self._last = None
-        command_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
-        self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', command_qos)
-        self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', 10)
+        self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', kept_qos())
+        self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', kept_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self._stepper = None
         if source == 'sensors':
@@ -105,9 +105,8 @@ class NmpcNode(Node):
         self._epoch = None
         self._log = StepperLog(self.get_logger())
         self._answer = None   # the command and reference of the last solved frame
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
-        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept_qos())
+        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', kept_qos())
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.create_publisher(PathMsg, 'drift/path', latched).publish(

@@ -13,6 +13,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 
 from drift_control.assembly import load_setup
 from drift_control.nodes import convert
+from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.spin import run_node
@@ -43,7 +44,7 @@ class ReferenceNode(Node):
         self._last_ref = None
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', 10)
+        self._ref_pub = self.create_publisher(DriftReference, 'drift/reference', kept_qos())
         self.create_publisher(PathMsg, 'drift/path', latched).publish(
             convert.path_to_msg(path, self.get_clock().now()))
         if trigger == 'state':   # every state counts: a deeper queue, and no timer

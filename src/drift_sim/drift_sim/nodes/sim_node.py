@@ -13,6 +13,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Header, String
 
 from drift_control.nodes import convert
+from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.spin import run_node
@@ -112,12 +113,13 @@ class SimNode(Node):
         elif io != 'ros':
             raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        kept = kept_qos()   # a recorder matched late still gets the first messages
         if self._sensors is None:
-            self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', reliable)
+            self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept)
         else:   # the estimator node publishes the state
-            self._sensor_pub = self.create_publisher(SensorSamples, 'vehicle/sensors', reliable)
-        self._truth_pub = self.create_publisher(VehicleState, 'sim/state', reliable)
-        self._clock_pub = self.create_publisher(Clock, '/clock', reliable)
+            self._sensor_pub = self.create_publisher(SensorSamples, 'vehicle/sensors', kept)
+        self._truth_pub = self.create_publisher(VehicleState, 'sim/state', kept)
+        self._clock_pub = self.create_publisher(Clock, '/clock', kept)
         self._inputs = [
             self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable),
             self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
@@ -186,6 +188,8 @@ class SimNode(Node):
         if self._sim.done:
             if self._command is None and self._can is None:
                 return self._fail('the controller never commanded in the whole run')
+            if self._mode == 'lockstep' and not self._gate.ready(self._sim.t, time.monotonic()):
+                return   # the answer to the last state too: every run's bag ends alike
             self.get_logger().info(f'scenario finished at t = {self._sim.t:.2f} s')
             self._end(True)
             return

@@ -72,11 +72,15 @@ class Ros:
         return future.result()
 
 
-def matching_qos(pubs):
-    """Reliable only if every publisher is; transient-local only if every publisher is."""
+def matching_qos(pubs, topic: str = ''):
+    """Reliable only if every publisher is; transient-local only if every publisher is and
+    ``topic`` is not one of the loop's kept topics (their history is for a recorder matched late:
+    echo and hz show what is sent now)."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from drift_tools.recording import KEPT_TOPICS
     reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in pubs)
-    latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs)
+    latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs) \
+        and not {topic, topic.lstrip('/')} & KEPT_TOPICS
     return QoSProfile(
         depth=100,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
@@ -101,7 +105,8 @@ def topic_echo(ros: Ros, args) -> int:
     msgtype, pubs = ros.wait_publishers(args.topic, args.timeout)
     seen = []
     ros.node.create_subscription(interface_class(msgtype), args.topic,
-                                 lambda m: (seen.append(1), dump(m)), matching_qos(pubs))
+                                 lambda m: (seen.append(1), dump(m)),
+                                 matching_qos(pubs, args.topic))
     if not ros.spin_until(lambda: bool(seen), args.timeout):
         raise CliError(f'nothing received on {args.topic} within {args.timeout:g} s')
     ros.spin_until(lambda: args.count and len(seen) >= args.count, float('inf'))
@@ -112,7 +117,8 @@ def topic_hz(ros: Ros, args) -> int:
     msgtype, pubs = ros.wait_publishers(args.topic, args.timeout)
     stamps = deque(maxlen=args.window)
     ros.node.create_subscription(interface_class(msgtype), args.topic,
-                                 lambda _m: stamps.append(time.monotonic()), matching_qos(pubs),
+                                 lambda _m: stamps.append(time.monotonic()),
+                                 matching_qos(pubs, args.topic),
                                  raw=True)
     start = time.monotonic()
     next_print = start + 1.0

@@ -17,7 +17,7 @@ from drift_control.nodes.spin import run_node
 from drift_control.params import ParamError, config_dir
 from drift_tools.bag_writer import DEFAULT_CHUNK_SIZE, BagWriter
 from drift_tools.disk import MIB, DiskLevel, DiskLimits, DiskWatch
-from drift_tools.recording import STACK_NAMESPACES, STACK_TOPICS, TopicSelector
+from drift_tools.recording import KEPT_TOPICS, STACK_NAMESPACES, STACK_TOPICS, TopicSelector
 from drift_tools.run_info import RECORD_NAME
 
 
@@ -89,7 +89,8 @@ class RecorderNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self._subs = {}        # topic -> (subscription, type, QoS), or None: cannot record
         for topic, (msgtype, latched) in STACK_TOPICS.items():
-            self._subscribe(resolve(topic), msgtype, make_qos(True, latched))
+            self._subscribe(resolve(topic), msgtype,
+                            make_qos(True, latched or topic in KEPT_TOPICS))
         # which publishers each subscription is matched with: a lock-step simulator starts the
         # run only once the recorder hears all of them (nothing of the run is lost)
         self._matched_pub = self.create_publisher(String, '/recorder/matched', make_qos(True, True))

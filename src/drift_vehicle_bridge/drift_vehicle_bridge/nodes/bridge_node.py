@@ -10,6 +10,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.cycle_watch import CycleWatch
+from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
 from drift_control.nodes.spin import run_node
@@ -60,8 +61,7 @@ class BridgeNode(Node):
         self._stats, self._diag_period = None, 1.0
         self._ticked = False
         self._cycle = CycleWatch()   # the longest gap between two cycles, for the diagnostics
-        state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', state_qos)
+        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
