@@ -152,27 +152,29 @@ class EquilibriumMap:
     def lookup_many(self, queries) -> list[tuple[Equilibrium, bool]]:
         """``[lookup(beta_abs, radius, direction) for ... in queries]``, the splines evaluated
         once for all queries (point by point as one lookup would: the same values)."""
-        points = []
-        for beta_abs, radius, direction in queries:
+        for _, _, direction in queries:
             if direction not in (Direction.LEFT, Direction.RIGHT):
                 raise ValueError(f'lookup needs Direction.LEFT or RIGHT, got {direction!r}')
-            b, clamped_b = _clamp(beta_abs, self.beta_abs[0], self.beta_abs[-1])
-            R, clamped_r = _clamp(radius, self.radius[0], self.radius[-1])
-            if clamped_b or clamped_r:
-                self._warn_clamped(beta_abs, radius, b, R)
-            points.append((b, R, clamped_b or clamped_r))
-        b = np.array([q[0] for q in points])
-        R = np.array([q[1] for q in points])
+        asked_b = np.array([q[0] for q in queries], dtype=float)
+        asked_R = np.array([q[1] for q in queries], dtype=float)
+        b, clamped_b = _clamp_many(asked_b, self.beta_abs[0], self.beta_abs[-1])
+        R, clamped_r = _clamp_many(asked_R, self.radius[0], self.radius[-1])
+        clamped = clamped_b | clamped_r
+        if clamped.any():   # throttled: the first one of a batch says it
+            k = int(np.argmax(clamped))
+            self._warn_clamped(asked_b[k], asked_R[k], b[k], R[k])
         i = np.abs(self.beta_abs[None, :] - b[:, None]).argmin(axis=1)
         j = np.abs(self.radius[None, :] - R[:, None]).argmin(axis=1)
-        holes = (~self.converged[i, j]).tolist()
+        flagged = (clamped | ~self.converged[i, j]).tolist()
         values = zip(*(s.ev(b, R).tolist() for s in self._splines))   # per query: V .. T_R
         out = []
-        for (bn, Rn, clamped), (_, _, direction), hole, (V, omega_F, omega_R, delta, T_R) in zip(
-                points, queries, holes, values):
-            eq = Equilibrium(V=V, beta=-bn, r=V / Rn, omega_F=omega_F, omega_R=omega_R,
-                             delta=delta, T_R=T_R)
-            out.append((eq if direction == Direction.LEFT else eq.mirrored(), clamped or hole))
+        for bn, Rn, (_, _, direction), flag, (V, omega_F, omega_R, delta, T_R) in zip(
+                b.tolist(), R.tolist(), queries, flagged, values):
+            if direction == Direction.LEFT:
+                eq = Equilibrium(V, -bn, V / Rn, omega_F, omega_R, delta, T_R)
+            else:   # Equilibrium.mirrored
+                eq = Equilibrium(V, bn, -(V / Rn), omega_F, omega_R, -delta, T_R)
+            out.append((eq, flag))
         return out
 
     def _warn_clamped(self, beta_abs, radius, b, R) -> None:
@@ -198,12 +200,12 @@ class EquilibriumMap:
                               [self.beta_abs.tolist(), self.radius.tolist()], flat.tolist())
 
 
-def _clamp(value: float, lo: float, hi: float) -> tuple[float, bool]:
-    value = float(value)
-    if not math.isfinite(value):
-        return lo, True     # never hand a NaN on: the lower corner, flagged
-    clamped = min(max(value, lo), hi)
-    return clamped, clamped != value
+def _clamp_many(values: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """The values limited to [lo, hi], a non-finite one to ``lo`` (never hand a NaN on), and
+    which of them moved (flagged)."""
+    finite = np.isfinite(values)
+    out = np.where(finite, np.minimum(np.maximum(values, lo), hi), lo)
+    return out, ~finite | (out != values)
 
 
 def fill_holes(values: np.ndarray, valid: np.ndarray, beta_abs: np.ndarray,
