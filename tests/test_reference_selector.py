@@ -437,6 +437,31 @@ def test_a_slide_to_the_other_side_or_with_the_catch_off_is_not_caught():
         assert ref.target.beta == pytest.approx(0.0)
 
 
+@pytest.mark.parametrize('direction', [Direction.LEFT, Direction.RIGHT])
+def test_the_entry_reference_leads_the_cars_own_sideslip_by_at_most_entry_lead(direction):
+    """A car that does not slide as the ramp asks: the entry's sideslip reference stays within
+    ``entry_lead`` of its sideslip to the drift side; after the entry, the path's again."""
+    prof = P.SideslipProfile(math.radians(30.0), grip_until=0.0, ramp_length=40.0)
+    path = P.circle(R, direction, sideslip=prof)
+    d = int(direction)
+    sel = ReferenceSelector(steady_circle_lookup, path, params(entry_lead=math.radians(10.0),
+                                                               beta_rate_max=100.0))
+    beta_ref = []
+    for k, (s, slide_deg) in enumerate([(1.0, 0.0), (30.0, 0.0), (32.0, 12.0), (34.0, -5.0),
+                                        (70.0, 0.0)]):
+        st = state_on(path, s, t=0.5 * k, beta=-d * math.radians(slide_deg))
+        beta_ref.append(math.degrees(-d * sel.select(st).target.beta))
+    path_deg = [math.degrees(float(path.beta_at(s))) for s in (1.0, 30.0, 32.0, 34.0, 70.0)]
+    assert beta_ref[0] == pytest.approx(path_deg[0], abs=0.01)   # the ramp starts below the lead
+    assert beta_ref[1] == pytest.approx(10.0)               # the ramp asks 25 deg, the car 0
+    assert beta_ref[2] == pytest.approx(22.0)               # the car slides: the lead follows
+    assert beta_ref[3] == pytest.approx(10.0)               # sliding the other way counts as 0
+    assert beta_ref[4] == pytest.approx(30.0)               # after the entry: the profile
+    off = ReferenceSelector(steady_circle_lookup, path, params(beta_rate_max=100.0))
+    ref = off.select(state_on(path, 30.0, t=0.0))
+    assert math.degrees(abs(ref.target.beta)) == pytest.approx(path_deg[1], abs=0.05), 'off'
+
+
 def exit_path():
     """A left drift circle leaving through a clothoid onto a straight, the sideslip falling
     from 30 to 0 deg along the clothoid (no entry ramp: the drift is established)."""

@@ -65,6 +65,8 @@ class ReferenceParams:
                                   # horizon [m/s^2] (0: off)
     catch_beta: float = 0.0       # in the entry, a slide to the drift side beyond this [rad] is
                                   # caught: the reference continues from it (0: off)
+    entry_lead: float = 0.0       # in the entry the sideslip reference leads the car's sideslip
+                                  # to the drift side by at most this [rad] (0: off)
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
     window_forward: float = 15.0  # ... and ahead of it [m]
     lost_distance: float = 5.0    # beyond this distance from the path search globally [m]
@@ -232,6 +234,15 @@ class ReferenceSelector:
             self._caught = max(self._caught, min(slide, float(self.path.drift_beta_at(s))))
         return self._caught
 
+    def _led(self, beta_abs: float, state: VehicleState, s: float) -> float:
+        """The entry's sideslip reference [rad], at most ``entry_lead`` beyond the car's own
+        sideslip to the drift side: a car with more rear grip than the map's does not slide as
+        the ramp asks, and a reference far ahead of it swings it wide when it does."""
+        if self.p.entry_lead <= 0.0 or s >= self.path.sideslip.entry_end or self._w is None:
+            return beta_abs
+        slide = -state.beta if self._w >= 0.5 else state.beta   # a left drift has beta < 0
+        return min(beta_abs, max(slide, 0.0) + self.p.entry_lead)
+
     def _radius(self, K_cmd: float) -> float:
         """The lookup radius of a curvature, limited to the map range [m]."""
         return 1.0 / max(min(abs(K_cmd), 1.0 / self.p.radius_min), 1.0 / self.p.radius_max)
@@ -273,6 +284,7 @@ class ReferenceSelector:
             K_cmd = _limit(last.curvature_cmd, K_cmd, p.curvature_rate_max * dt)
         beta_abs = self._holdable(max(float(self.path.beta_at(fp.s)), self._catch(state, fp.s)),
                                   K_cmd, fp.s)
+        beta_abs = self._led(beta_abs, state, fp.s)
         if limited and self._beta_ref is not None:
             beta_abs = _limit(self._beta_ref, beta_abs, p.beta_rate_max * dt)
         self._beta_ref = beta_abs
