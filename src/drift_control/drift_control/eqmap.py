@@ -170,11 +170,8 @@ class EquilibriumMap:
         out = []
         for bn, Rn, (_, _, direction), flag, (V, omega_F, omega_R, delta, T_R) in zip(
                 b.tolist(), R.tolist(), queries, flagged, values):
-            if direction == Direction.LEFT:
-                eq = Equilibrium(V, -bn, V / Rn, omega_F, omega_R, delta, T_R)
-            else:   # Equilibrium.mirrored
-                eq = Equilibrium(V, bn, -(V / Rn), omega_F, omega_R, -delta, T_R)
-            out.append((eq, flag))
+            eq = Equilibrium(V, -bn, V / Rn, omega_F, omega_R, delta, T_R)
+            out.append((eq if direction == Direction.LEFT else eq.mirrored(), flag))
         return out
 
     def _warn_clamped(self, beta_abs, radius, b, R) -> None:

@@ -372,9 +372,8 @@ class ReferenceSelector:
         if self._lookup_many is None:
             return [self.equilibrium(*q) for q in queries]
         asks, plan = [], []   # map queries, and per stage: (direction, where its lookups are)
-        k_lo, k_hi = 1.0 / self.p.radius_max, 1.0 / self.p.radius_min
         for beta_abs, K_cmd, w in queries:
-            radius = 1.0 / max(min(abs(K_cmd), k_hi), k_lo)   # _radius written out
+            radius = self._radius(K_cmd)
             if w in (0.0, 1.0):
                 direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
                 plan.append((direction, len(asks), None, w))
