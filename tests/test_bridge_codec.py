@@ -15,7 +15,7 @@ from drift_vehicle_bridge.codec import (COMMAND_FRAMES, STATE_SIGNALS, Codec, Fa
 from drift_vehicle_bridge.codec import load_description
 from drift_vehicle_bridge.gateway import Gateway
 from drift_vehicle_bridge.monitor import StateMonitor
-from drift_vehicle_bridge.params import MonitorParams, load_bridge_params
+from drift_vehicle_bridge.params import MonitorParams, SensorLinkParams, load_bridge_params
 from drift_vehicle_bridge.pdu import Pdu
 
 PKG = Path(__file__).resolve().parents[1] / 'src' / 'drift_vehicle_bridge' / 'drift_vehicle_bridge'
@@ -219,3 +219,32 @@ def test_core_modules_do_not_import_rclpy():
         names |= {node.module.split('.')[0] for node in ast.walk(tree)
                   if isinstance(node, ast.ImportFrom) and node.module}
         assert not names & {'rclpy', 'drift_msgs', 'std_msgs', 'diagnostic_msgs'}, path.name
+
+
+def test_every_description_carries_each_sensor_unit_in_estimator_order(codec):
+    from drift_control.estimator import FIELDS
+    from drift_vehicle_bridge.description import SENSOR_SIGNALS
+
+    assert list(SENSOR_SIGNALS) == list(FIELDS)
+    assert all(len(SENSOR_SIGNALS[u]) == len(FIELDS[u]) for u in FIELDS)
+    assert codec.sensor_missing == {}
+    assert set(codec.sensor_frames) == set(SENSOR_SIGNALS)
+    carried = {s.name for n in codec.gateway_pdus for s in codec.payload_signals(n)}
+    assert {s for sigs in SENSOR_SIGNALS.values() for s in sigs} <= carried
+
+
+def test_sensor_mode_refuses_a_description_without_a_unit_and_a_missing_latency(tmp_path):
+    dbc = (config_dir() / DESCRIPTIONS[0]).read_text()
+    lean = tmp_path / 'lean.dbc'
+    lean.write_text('\n'.join(line for line in dbc.splitlines() if 'r_imu' not in line))
+    codec = Codec.load(lean)
+    assert codec.sensor_missing == {'imu': ('r_imu',)}
+    load_bridge_params()   # without sensor mode the description serves as before
+    params = load_bridge_params(None, {'sensors': {'enabled': True}})
+    with pytest.raises(ParamError, match=r"lean.dbc: sensor mode needs the imu signal\(s\) "
+                                         r"\['r_imu'\]"):
+        Gateway(None, codec, params)
+    with pytest.raises(ParamError, match=r'bridge.sensors.latency.gps: unknown sensor unit'):
+        load_bridge_params(None, {'sensors': {'latency': {'gps': 0.1}}})
+    with pytest.raises(ParamError, match=r"bridge.sensors.latency: .*\(missing \['ins', "):
+        SensorLinkParams(enabled=True, latency={'torque': 0.02})

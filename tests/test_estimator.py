@@ -124,6 +124,19 @@ def test_a_long_ins_dropout_marks_speed_and_sideslip_invalid():
     assert not states[800].has(Validity.V)
 
 
+def test_a_unit_that_has_not_sent_yet_leaves_its_signals_invalid():
+    """Over a link the units' first frames come at their own rates: no value before the first."""
+    sensors = Sensors(SENSORS, DT, 0)
+    est = Estimator(VEHICLE, PARAMS)
+    first = [s for s in sensors.reset(circle(0.0)) if s.unit in ('ins', 'imu')]
+    state = est.step(first, 0.0)
+    assert state.has(Validity.CONTROL & ~(Validity.DELTA | Validity.WHEEL_SPEEDS))
+    assert not state.has(Validity.DELTA) and not state.has(Validity.STEERING_TORQUE)
+    assert not state.has(Validity.WHEEL_SPEEDS) and not state.has(Validity.DRIVE_TORQUE)
+    later = est.step(sensors.step(circle(DT)) + sensors.step(circle(2 * DT)), 2 * DT)
+    assert later.has(Validity.ALL), 'every unit has sent by 20 ms'
+
+
 def test_the_bias_uncertainty_grows_by_its_walk_however_the_time_is_split():
     """The IMU's white noise drives the velocity and heading, not the biases: splitting one
     propagation into a thousand tiny ones leaves the bias variances as the walk says."""

@@ -9,6 +9,7 @@ pytest.importorskip('drift_vehicle_bridge.vehicle_side')
 from drift_sim.can_vehicle import CanVehicle  # noqa: E402
 from drift_sim.scenario import load_scenario  # noqa: E402
 from drift_sim.simulator import Simulator  # noqa: E402
+from drift_vehicle_bridge.description import SENSOR_SIGNALS  # noqa: E402
 from drift_vehicle_bridge.gateway import Gateway  # noqa: E402
 from drift_vehicle_bridge.params import load_bridge_params  # noqa: E402
 from drift_vehicle_bridge.vehicle_side import CarSide  # noqa: E402
@@ -40,3 +41,104 @@ def test_bridge_gateway_drives_the_simulated_car_over_a_virtual_bus():
         assert sim.truth.state.drive_torque > 1400.0, 'the request reached the powertrain'
         assert seen.V == pytest.approx(sim.truth.state.V, abs=0.3), 'state frames reach the bridge'
         assert vehicle.released > 20
+
+
+class _RecordingCar(CarSide):
+    """The car's end, keeping each step's sensor samples as they went out."""
+
+    sent_samples: list = []
+
+    def send_samples(self, samples, brake_pedal=False, skip=()):
+        self.sent_samples.append(list(samples))
+        return super().send_samples(samples, brake_pedal, skip)
+
+
+@pytest.mark.parametrize('description', ['can/drift_vehicle.dbc', 'can/drift_vehicle_fd.dbc'])
+def test_sensor_samples_cross_the_bus_to_the_bridge(description):
+    """Sensor mode: each unit's sample leaves the car in its frames and arrives at the bridge
+    as the same sample (to the frame's resolution), at the unit's rate, aged by its latency."""
+    from drift_sim.sensors import Sensors, load_sensor_params
+    from drift_vehicle_bridge.codec import Codec
+    from drift_vehicle_bridge.params import description_path
+
+    fd = description.endswith('_fd.dbc')
+    params = load_bridge_params(None, {'description': description, 'bus': {'fd': fd},
+                                       'sensors': {'enabled': True}})
+    codec = Codec.load(description_path(params))
+    scale = {s.name: s.scale for name in codec.gateway_pdus for s in codec.payload_signals(name)}
+    with can.Bus('sim_can_sensors', interface='virtual', fd=fd) as car_bus, \
+            can.Bus('sim_can_sensors', interface='virtual', fd=fd) as our_bus:
+        car = _RecordingCar(car_bus, codec)
+        car.sent_samples = []
+        gateway = Gateway(our_bus, codec, params)
+        sim = Simulator(load_scenario('steady_dry', ['duration=2.0']))
+        vehicle = CanVehicle(sim, car, sensors=Sensors(load_sensor_params('realistic'), sim.dt))
+        received, compared = {}, 0
+        for k in range(100):
+            now = 0.01 * k
+            vehicle.step(now)
+            gateway.step(now)
+            got = {s.unit: s for s in gateway.take_samples(now)}
+            for unit, s in got.items():
+                received[unit] = received.get(unit, 0) + 1
+                assert s.age == pytest.approx(params.sensors.latency[unit])
+            for sample in car.sent_samples[-1]:
+                if sample.unit not in got:
+                    continue
+                sigs = SENSOR_SIGNALS[sample.unit]
+                for sig, sent, back in zip(sigs, sample.values, got[sample.unit].values):
+                    assert back == pytest.approx(sent, abs=0.5 * scale[sig] + 1e-9), sig
+                    compared += 1
+    assert compared > 1000
+    # wheels at 50 Hz; on CAN FD steering and torque share the wheels' frame, and its rate
+    slow = {'wheels', 'steering', 'torque'} if fd else {'wheels'}
+    for unit in SENSOR_SIGNALS:
+        expected = 50 if unit in slow else 100
+        assert expected - 3 <= received.get(unit, 0) <= expected, unit
+    assert gateway.stats()['sensor_samples'] == received
+    assert gateway.state.validity == 0x7ff, 'the 50 Hz frames within their own timeout'
+    timeouts = gateway.monitor._timeout
+    assert timeouts['DS_CHASSIS' if fd else 'DS_WHEELS_FRONT'] == pytest.approx(0.06)
+    assert timeouts['DS_POSE' if fd else 'DS_POSE_XY'] == pytest.approx(0.03)
+
+
+def test_a_unit_with_a_lost_frame_waits_for_its_next_complete_sample():
+    from drift_sim.sensors import Sensors, load_sensor_params
+
+    params = load_bridge_params(None, {'sensors': {'enabled': True}})
+    with can.Bus('sim_can_lost', interface='virtual') as car_bus, \
+            can.Bus('sim_can_lost', interface='virtual') as our_bus:
+        car = CarSide(car_bus)
+        gateway = Gateway(our_bus, car.codec, params)
+        sim = Simulator(load_scenario('steady_dry', ['duration=1.0']))
+        sensors = Sensors(load_sensor_params('realistic'), sim.dt)
+        sensors.reset(sim.truth.state)
+        units = []
+        for k in range(10):
+            sim.step(Command(0.01 * k, sim.state.delta, 0.0, 0.0, Mode.OFF))
+            car.send_samples(sensors.step(sim.truth.state),
+                             skip=('DS_POSE_XY',) if k == 6 else ())
+            gateway.step(0.01 * k)
+            units.append({s.unit for s in gateway.take_samples(0.01 * k)})
+    assert 'ins' in units[5] and 'ins' in units[7]
+    assert 'ins' not in units[6] and 'imu' in units[6], 'the INS of step 6 lacked its position'
+
+
+def test_parts_of_a_sample_more_than_max_spread_apart_are_not_joined():
+    from drift_vehicle_bridge.codec import Codec, Frame
+    from drift_vehicle_bridge.sensors import SensorAssembler
+    from drift_vehicle_bridge.vehicle_side import default_dbc
+
+    codec = Codec.load(default_dbc())
+    latency = dict.fromkeys(SENSOR_SIGNALS, 0.0)
+    sensors = SensorAssembler(codec, latency, max_spread=0.015)
+    ins = codec.sensor_frames['ins']
+    values = {name: {s.name: 1.0 for s in codec.payload_signals(name)} for name in ins}
+    sensors.receive(Frame(ins[0], 0, values[ins[0]]), 0.0)    # the rest of this one lost
+    assert sensors.take(0.0) == [] and sensors.take(0.01) == []
+    for name in ins[1:]:
+        sensors.receive(Frame(name, 1, values[name]), 0.02)
+    assert sensors.take(0.02) == [], 'the first part is 20 ms older: not the same sample'
+    sensors.receive(Frame(ins[0], 2, values[ins[0]]), 0.025)   # a burst split by a cycle edge
+    (sample,) = sensors.take(0.03)
+    assert sample.unit == 'ins' and sample.age == pytest.approx(0.005)

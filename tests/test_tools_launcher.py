@@ -243,7 +243,7 @@ def test_node_command_and_clock_ownership(tmp_path, clock):
     assert yaml.safe_load(p_rec['bag_dir']) == str(tmp_path / 'bag') and 'bag_dir' not in p_sim
 
 
-def test_the_estimator_stage_follows_the_simulator_and_gets_the_sensors(tmp_path):
+def test_the_estimator_stage_follows_the_samples_source_and_gets_the_sensors(tmp_path):
     from drift_tools.stack import ESTIMATOR_MODULE, NMPC_MODULE, with_estimator
     cfg = load_stack(REPO / 'config' / 'stack.yaml')
     # in the NMPC's process with the selector (one hop), or a node of its own (three)
@@ -251,9 +251,15 @@ def test_the_estimator_stage_follows_the_simulator_and_gets_the_sensors(tmp_path
         'sim', 'nmpc', 'recorder']
     nodes = with_estimator(cfg.graph('sim'), cfg.node_params, 'node')
     assert [n.name for n in nodes] == ['sim', 'estimator', 'reference', 'nmpc', 'recorder']
-    for graph in ('vehicle', 'sim_can'):   # no simulator on ROS topics: refused
-        with pytest.raises(ParamError, match='--sensors'):
-            with_estimator(cfg.graph(graph), cfg.node_params)
+    with pytest.raises(ParamError, match='--sensors'):   # a car: no simulated sensors
+        with_estimator(cfg.graph('vehicle'), cfg.node_params)
+    # a simulated car on a link: the samples come from the bridge, the estimator after it
+    assert [n.name for n in with_estimator(cfg.graph('sim_can'), cfg.node_params, 'node')] == [
+        'can_car', 'can_bridge', 'estimator', 'reference', 'can_nmpc', 'recorder']
+    p_bridge = _params(node_command(NodeSpec('b', 'drift_vehicle_bridge.nodes.bridge_node'),
+                                    RunOptions(params_file=tmp_path, config_dir=tmp_path,
+                                               sensors='realistic')))
+    assert yaml.safe_load(p_bridge['sensors']) is True
     opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path, scenario='s',
                       overrides=('surface.mu=0.9',), sensors='realistic', estimator='none',
                       sensor_faults=('ins:dropout:1:2',), estimator_in='node')

@@ -544,6 +544,13 @@ class Estimator:
         validity = Validity.ALL
         if now - self._last_aided > self.p.max_coast:
             validity &= ~(Validity.V | Validity.BETA | Validity.VX_VY)
+        # a unit that has not sent yet (a slower one at the start) has no value to give
+        if any(f.x is None for f in self.wheels):
+            validity &= ~Validity.WHEEL_SPEEDS
+        if self.steering.x is None:
+            validity &= ~(Validity.DELTA | Validity.STEERING_TORQUE)
+        if self.torque.x is None:
+            validity &= ~Validity.DRIVE_TORQUE
         return VehicleState(
             stamp=now, V=math.hypot(vx, vy), beta=math.atan2(vy, vx),
             r=self.yaw_rate.at(now) if self.yaw_rate.x is not None else u[3] - x[E.B_R],

@@ -28,10 +28,16 @@ class CanVehicle:
         Keep the plant at its initial state, still sending state frames, until the first
         accepted request: a scenario that starts mid-drift then begins when the stack has armed
         and engaged, not when process start-up and discovery happen to finish.
+    sensors : drift_sim.sensors.Sensors, optional
+        The car's sensor units: their samples go out in the frames (each unit at its rate,
+        latency and noise) instead of the plant's measured state.
     """
 
-    def __init__(self, sim: Simulator, car, hold_until_engaged: bool = False):
+    def __init__(self, sim: Simulator, car, hold_until_engaged: bool = False, sensors=None):
         self.sim, self.car = sim, car
+        self.sensors = sensors
+        if sensors is not None:
+            sensors.reset(sim.truth.state)
         self.hold = hold_until_engaged
         self.engaged = False   # a request has been accepted since the start
         self.released = 0      # steps without an accepted request
@@ -45,12 +51,18 @@ class CanVehicle:
         self.engaged = self.engaged or command is not None
         if self.hold and not self.engaged:   # sensors still measure (noise): never frozen
             state = self.sim.plant.measure()
-            self.car.send_state(dataclasses.replace(state, stamp=now))
+            self._send(state, now)
             return state
         if command is None:
             self.released += 1
             command = Command(now, self.sim.state.delta, 0.0, 0.0, Mode.OFF)
         self.command = command
         state = self.sim.step(command)
-        self.car.send_state(dataclasses.replace(state, stamp=now))
+        self._send(state, now)
         return state
+
+    def _send(self, state: VehicleState, now: float) -> None:
+        if self.sensors is None:
+            self.car.send_state(dataclasses.replace(state, stamp=now))
+        else:
+            self.car.send_samples(self.sensors.step(self.sim.truth.state), state.brake_pedal)

@@ -21,6 +21,7 @@ DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
 RECORDER_MODULE = 'drift_tools.nodes.recorder_node'
 SIM_MODULE = 'drift_sim.nodes.sim_node'
 ESTIMATOR_MODULE = 'drift_control.nodes.estimator_node'
+BRIDGE_MODULE = 'drift_vehicle_bridge.nodes.bridge_node'
 # nodes whose ``set`` parameter takes scenario overrides (the bridge's takes bridge.yaml keys)
 SCENARIO_MODULES = (SIM_MODULE, 'drift_control.nodes.reference_node',
                     'drift_control.nodes.nmpc_node', ESTIMATOR_MODULE)
@@ -137,26 +138,32 @@ ESTIMATOR_PLACES = ('nmpc', 'node')
 
 def with_estimator(nodes: list[NodeSpec], node_params: dict, place: str = 'nmpc') \
         -> list[NodeSpec]:
-    """The graph with the estimator stage: the simulator then publishes its sensor samples.
+    """The graph with the estimator stage: the simulator then publishes its sensor samples, or
+    a simulated car on a link sends them in its frames and the bridge publishes them.
 
     ``place='nmpc'``: estimator and selector run inside the NMPC node (one DDS hop from the
     samples to the command), the reference node leaves the graph; ``'node'``: an estimator
-    node after the simulator publishes the state for the reference and NMPC nodes. ParamError
-    for a graph without a simulator on ROS topics (the bridge does not carry the sensor units
-    yet).
+    node after the samples' source publishes the state for the reference and NMPC nodes.
+    ParamError for a graph without a simulator (a car's own sensors: the bridge's ``sensors``
+    parameter).
     """
-    sims = [n for n in nodes if n.module == SIM_MODULE and node_params.get(n.name, {})
-            .get('ros__parameters', {}).get('io', 'ros') == 'ros']
-    if not sims:
-        raise ParamError('--sensors: the graph has no simulator publishing on ROS topics '
-                         '(the bridge and the link graphs do not carry the sensor units yet)')
+    def on_link(n: NodeSpec) -> bool:
+        return node_params.get(n.name, {}).get('ros__parameters', {}).get('io', 'ros') == 'link'
+
+    sims = [n for n in nodes if n.module == SIM_MODULE]
+    sources = [n for n in sims if not on_link(n)]
+    if any(on_link(n) for n in sims):
+        sources += [n for n in nodes if n.module == BRIDGE_MODULE]
+    if not sources:
+        raise ParamError('--sensors: the graph has no simulator (on ROS topics, or on a link '
+                         'behind the bridge)')
     if place not in ESTIMATOR_PLACES:
         raise ParamError(f'estimator place {place!r} not in {list(ESTIMATOR_PLACES)}')
     if place == 'nmpc':
         if not any(n.module == NMPC_MODULE for n in nodes):
             raise ParamError('--estimator-in nmpc: the graph has no NMPC node')
         return [n for n in nodes if n.module != REFERENCE_MODULE]
-    at = nodes.index(sims[0]) + 1
+    at = max(nodes.index(n) for n in sources) + 1
     return [*nodes[:at], NodeSpec('estimator', ESTIMATOR_MODULE), *nodes[at:]]
 
 
@@ -246,6 +253,8 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
         for name in ('sensor_set', 'sensor_faults'):
             if getattr(opts, name):
                 params[name] = list(getattr(opts, name))
+    if spec.module == BRIDGE_MODULE and opts.sensors:
+        params['sensors'] = True
     in_nmpc = spec.module == NMPC_MODULE and opts.sensors and opts.estimator_in == 'nmpc'
     if in_nmpc:
         params['state_source'] = 'sensors'

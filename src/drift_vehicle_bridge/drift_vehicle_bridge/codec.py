@@ -16,9 +16,9 @@ from pathlib import Path
 from drift_control.params import ParamError
 from drift_control.signals import Command, Mode, VehicleState
 from drift_vehicle_bridge.description import (CMD_STATUS, CMD_STEER, CMD_TORQUE, COMMAND_FRAMES,
-                                              COMMAND_SENDER, COMMAND_SIGNALS, STATE_SENDER,
-                                              STATE_SIGNALS, VALIDITY_SIGNALS, WHEELS,
-                                              Description, PduSpec)
+                                              COMMAND_SENDER, COMMAND_SIGNALS, SENSOR_SIGNALS,
+                                              STATE_SENDER, STATE_SIGNALS, VALIDITY_SIGNALS,
+                                              WHEELS, Description, PduSpec)
 from drift_vehicle_bridge.e2e import Protection, protection
 from drift_vehicle_bridge.mode import BridgeMode
 from drift_vehicle_bridge.pdu import Pdu
@@ -99,6 +99,12 @@ class Codec:
                 (s.name, s.minimum - 0.5 * s.scale, s.maximum + 0.5 * s.scale)
                 for s in payload if s.minimum is not None and s.maximum is not None]
         self.state_frames = self._state_frames()
+        self.sensor_frames, self.sensor_missing = self._sensor_frames()
+        # every GATEWAY PDU with a state or sensor signal, and the sensor units each carries
+        self.gateway_pdus = tuple(n for n in self._specs if n in self.state_frames or any(
+            n in pdus for pdus in self.sensor_frames.values()))
+        self.pdu_units = {n: tuple(u for u, pdus in self.sensor_frames.items() if n in pdus)
+                          for n in self.gateway_pdus}
         self.validity_frames = {
             bit: tuple(sorted({n for n, sigs in self.state_frames.items() if set(sigs) & set(need)}))
             for bit, need in VALIDITY_SIGNALS.items()}
@@ -129,6 +135,20 @@ class Codec:
         for sig, name in carriers.items():
             frames.setdefault(name, {})[sig] = STATE_SIGNALS[sig]
         return frames
+
+    def _sensor_frames(self) -> tuple[dict[str, tuple[str, ...]], dict[str, tuple[str, ...]]]:
+        """Sensor unit -> the GATEWAY PDUs carrying its signals, for the units whose every
+        signal a PDU carries; and unit -> its signals no PDU carries, for the others."""
+        carriers = {sig.name: spec.name for spec in self._specs.values()
+                    if STATE_SENDER in spec.senders for sig in self._payload[spec.name]}
+        frames, missing = {}, {}
+        for unit, sigs in SENSOR_SIGNALS.items():
+            absent = tuple(s for s in sigs if s not in carriers)
+            if absent:
+                missing[unit] = absent
+            else:
+                frames[unit] = tuple(dict.fromkeys(carriers[s] for s in sigs))
+        return frames, missing
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> 'Codec':
@@ -205,20 +225,43 @@ class Codec:
         return {k: min(max(v, sigs[k].minimum), sigs[k].maximum) for k, v in values.items()}
 
     def state_signals(self, state: VehicleState) -> dict[str, dict]:
-        """Signal values of every state PDU for ``state`` (PDU name -> {signal: value})."""
+        """Signal values of every GATEWAY PDU for ``state`` (PDU name -> {signal: value}); the
+        inertial sensor's yaw rate ``r_imu`` is the state's ``r``."""
         fields = {'vx': state.vx, 'vy': state.vy, 'V': state.V, 'r': state.r,
-                  'beta': state.beta, 'ax': state.ax, 'ay': state.ay, 'delta': state.delta,
-                  'steering_torque': state.steering_torque, 'drive_torque': state.drive_torque,
+                  'r_imu': state.r, 'beta': state.beta, 'ax': state.ax, 'ay': state.ay,
+                  'delta': state.delta, 'steering_torque': state.steering_torque,
+                  'drive_torque': state.drive_torque,
                   'brake_pedal': int(bool(state.brake_pedal)), 'x': state.x, 'y': state.y,
                   'yaw': math.atan2(math.sin(state.yaw), math.cos(state.yaw))}
         fields.update(zip(WHEELS, state.wheel_speeds))
-        return {name: {sig: fields[sig] for sig in sigs}
-                for name, sigs in self.state_frames.items()}
+        return {name: self._values(name, fields) for name in self.gateway_pdus}
+
+    def sensor_signals(self, samples: dict[str, tuple], brake_pedal: bool = False) \
+            -> dict[str, dict]:
+        """Signal values of the GATEWAY PDUs that go out with one step's sensor samples
+        (unit -> values in the order of ``SENSOR_SIGNALS[unit]``).
+
+        A PDU goes out when every unit it carries has a sample here (a PDU of units at several
+        rates at the slowest one's), a PDU of no unit every time. The INS's speed and sideslip
+        give ``vx`` and ``vy``; a signal of no unit and no state field reads 0.
+        """
+        fields = {'brake_pedal': int(bool(brake_pedal))}
+        for unit, values in samples.items():
+            fields.update(zip(SENSOR_SIGNALS[unit], values))
+        if 'ins' in samples:
+            V, beta = fields['V'], fields['beta']
+            fields.update(vx=V * math.cos(beta), vy=V * math.sin(beta),
+                          yaw=math.atan2(math.sin(fields['yaw']), math.cos(fields['yaw'])))
+        return {name: self._values(name, fields) for name in self.gateway_pdus
+                if all(u in samples for u in self.pdu_units[name])}
+
+    def _values(self, name: str, fields: dict) -> dict:
+        return {s.name: fields.get(s.name, 0.0) for s in self._payload[name]}
 
     def frame_fields(self, frame: Frame) -> dict:
         """The VehicleState field values a decoded state PDU carries."""
         return {field: float(frame.values[sig])
-                for sig, field in self.state_frames[frame.name].items()}
+                for sig, field in self.state_frames.get(frame.name, {}).items()}
 
 
 def load_description(path: str | os.PathLike) -> Description:
@@ -283,6 +326,7 @@ def command_from_signals(status: dict, steer: dict | None, torque: dict | None,
 
 
 __all__ = ['CMD_STATUS', 'CMD_STEER', 'CMD_TORQUE', 'COMMAND_FRAMES', 'COMMAND_SIGNALS', 'Codec',
-           'Fault', 'Frame', 'FrameError', 'STATE_SIGNALS', 'VALIDITY_SIGNALS', 'WHEELS',
+           'Fault', 'Frame', 'FrameError', 'SENSOR_SIGNALS', 'STATE_SIGNALS', 'VALIDITY_SIGNALS',
+           'WHEELS',
            'command_from_signals', 'load_description', 'signal_bits', 'state_from_fields',
            'steer_signals', 'torque_signals']

@@ -36,6 +36,17 @@ VALIDITY_SIGNALS: dict[Validity, tuple[str, ...]] = {
     Validity.POSE: ('x', 'y', 'yaw'),
 }
 
+# Sensor mode: each sensor unit's signals in the order of drift_control.estimator.FIELDS[unit],
+# what the bridge hands the state estimator as one sample. The INS's yaw rate is ``r``, the car's
+# own inertial sensor's ``r_imu`` (biased, not compensated).
+SENSOR_SIGNALS: dict[str, tuple[str, ...]] = {
+    'ins': ('V', 'beta', 'r', 'x', 'y', 'yaw'),
+    'imu': ('ax', 'ay', 'r_imu'),
+    'wheels': WHEELS,
+    'steering': ('delta', 'steering_torque'),
+    'torque': ('drive_torque',),
+}
+
 CMD_STEER = 'DS_CMD_STEER'
 CMD_TORQUE = 'DS_CMD_TORQUE'
 CMD_STATUS = 'DS_CMD_STATUS'
@@ -95,5 +106,5 @@ class Description:
 
 
 __all__ = ['CMD_STATUS', 'CMD_STEER', 'CMD_TORQUE', 'COMMAND_FRAMES', 'COMMAND_SENDER',
-           'COMMAND_SIGNALS', 'Description', 'PduSpec', 'STATE_SENDER', 'STATE_SIGNALS',
-           'VALIDITY_SIGNALS', 'WHEELS']
+           'COMMAND_SIGNALS', 'Description', 'PduSpec', 'SENSOR_SIGNALS', 'STATE_SENDER',
+           'STATE_SIGNALS', 'VALIDITY_SIGNALS', 'WHEELS']

@@ -5,6 +5,7 @@ import logging
 import math
 import os
 from collections import Counter
+from dataclasses import replace
 
 import can
 
@@ -17,6 +18,7 @@ from drift_vehicle_bridge.mode import BridgeMode, ModeManager
 from drift_vehicle_bridge.monitor import StateMonitor
 from drift_vehicle_bridge.params import BridgeParams, description_path
 from drift_vehicle_bridge.pdu import Pdu
+from drift_vehicle_bridge.sensors import SensorAssembler, UnitSample, sensor_timeouts
 from drift_vehicle_bridge.transport import as_transport, discard_pending, open_transport
 
 log = logging.getLogger(__name__)
@@ -50,13 +52,22 @@ class Gateway:
     checker : drift_control.plausibility.InputChecker, optional
         The vehicle's physical bounds on a measured state (wheel speeds against the speed, the
         steering lock) and the frozen-sensor check: an implausible state is an invalid one.
+
+    With ``params.sensors.enabled`` the received PDUs are also reassembled into the sensor
+    units' samples (``take_samples``).
     """
 
     def __init__(self, link, codec: Codec, params: BridgeParams, checker=None):
         self.transport = None if link is None else as_transport(link)
         self.codec, self.params = codec, params
         self._allow = _check_tx_allow(codec, params)
-        self.monitor = StateMonitor(codec, params.monitor)
+        self.sensors, monitor = None, params.monitor
+        if params.sensors.enabled:
+            self.sensors = SensorAssembler(codec, params.sensors.latency, 1.5 * params.cycle_time)
+            monitor = replace(monitor, timeouts={
+                **sensor_timeouts(codec, params.sensors.rate, monitor.frame_timeout),
+                **monitor.timeouts})
+        self.monitor = StateMonitor(codec, monitor, self.sensors)
         self.modes = ModeManager(params.mode, checker)
         self.limiter = CommandLimiter(params.limits, params.cycle_time)
         self.state: VehicleState | None = None
@@ -89,6 +100,10 @@ class Gateway:
             return False
         self._command, self._command_time = cmd, now
         return True
+
+    def take_samples(self, now: float) -> list[UnitSample]:
+        """The sensor units' samples completed since the last call (sensor mode, else none)."""
+        return self.sensors.take(now) if self.sensors is not None else []
 
     def request_arm(self, now: float) -> tuple[bool, str]:
         """Explicit arm request (operator); returns (armed, why)."""
@@ -143,6 +158,7 @@ class Gateway:
                 'faults': dict(checker.faults),
                 'e2e': checker.states(), 'foreign': checker.foreign,
                 'discarded_at_start': self.discarded_at_start, 'tx': dict(self.sent),
+                **({'sensor_samples': dict(self.sensors.samples)} if self.sensors else {}),
                 'errors': {**self.errors, **{f'link_{k}': v for k, v in
                                              getattr(self.transport, 'errors', {}).items()}}}
 

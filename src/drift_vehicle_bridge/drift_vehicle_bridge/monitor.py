@@ -14,12 +14,13 @@ class StateMonitor:
 
     A validity bit is set while every PDU carrying one of its signals (``codec.validity_frames``)
     is valid (E2E) and arrived within its timeout; an invalid signal keeps its last value with
-    the bit cleared.
+    the bit cleared. With ``sensors`` (a ``SensorAssembler``) each accepted PDU whose E2E state
+    is valid also goes there.
     """
 
-    def __init__(self, codec: Codec, params: MonitorParams):
-        self.codec = codec
-        names = tuple(codec.state_frames)
+    def __init__(self, codec: Codec, params: MonitorParams, sensors=None):
+        self.codec, self.sensors = codec, sensors
+        names = codec.gateway_pdus
         unknown = sorted(set(params.timeouts) - set(names))
         if unknown:
             raise ParamError(f'bridge.monitor.timeouts: unknown PDU(s) {unknown} '
@@ -36,6 +37,8 @@ class StateMonitor:
             return False
         self._fields.update(self.codec.frame_fields(frame))
         self._seen[frame.name] = now
+        if self.sensors is not None and self.checker.valid(frame.name):
+            self.sensors.receive(frame, now)
         return True
 
     def tick(self, now: float) -> None:

@@ -126,6 +126,29 @@ class LimitParams:
 
 
 @dataclass(frozen=True)
+class SensorLinkParams:
+    """Sensor mode: the sensor units' signals handed to the state estimator as samples."""
+
+    enabled: bool = False               # publish vehicle/sensors instead of vehicle/state
+    latency: dict[str, float] = field(default_factory=dict)   # unit -> sample instant to the
+                                                              # bridge's reception [s]
+    rate: dict[str, float] = field(default_factory=dict)      # unit -> samples per second [Hz]
+
+    def __post_init__(self):
+        from drift_vehicle_bridge.description import SENSOR_SIGNALS
+        for key, table, low, high, unit_of in (('latency', self.latency, 0.0, 0.5, 's'),
+                                               ('rate', self.rate, 1.0, 1000.0, 'Hz')):
+            for unit, v in table.items():
+                require(unit in SENSOR_SIGNALS, f'bridge.sensors.{key}.{unit}',
+                        f'unknown sensor unit (one of {list(SENSOR_SIGNALS)})')
+                require(low <= v <= high, f'bridge.sensors.{key}.{unit}',
+                        f'must be in [{low:g}, {high:g}] {unit_of}, got {v!r}')
+            missing = [u for u in SENSOR_SIGNALS if u not in table]
+            require(not self.enabled or not missing, f'bridge.sensors.{key}',
+                    f'sensor mode needs the {key} of every unit (missing {missing})')
+
+
+@dataclass(frozen=True)
 class BridgeParams:
     """Everything the bridge core needs; ``description`` is relative to the config directory."""
 
@@ -138,6 +161,7 @@ class BridgeParams:
     limits: LimitParams
     tx_allow: tuple[str, ...]           # the only PDU names ever written
     udp: UdpParams = UdpParams()
+    sensors: SensorLinkParams = SensorLinkParams()
     auto_arm: bool = False              # simulation only: arm without an operator request
 
     def __post_init__(self):
@@ -211,5 +235,6 @@ def description_path(params: BridgeParams, cfg_dir: str | os.PathLike | None = N
 
 
 __all__ = ['BridgeParams', 'BusParams', 'Envelope', 'LimitParams', 'ModeParams',
-           'MonitorParams', 'ParamError', 'SIMULATED_INTERFACES', 'UdpParams', 'description_path',
+           'MonitorParams', 'ParamError', 'SIMULATED_INTERFACES', 'SensorLinkParams', 'UdpParams',
+           'description_path',
            'load_bridge_params']

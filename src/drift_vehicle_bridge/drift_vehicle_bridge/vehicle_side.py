@@ -75,8 +75,21 @@ class CarSide:
         for bit, frames in self.codec.validity_frames.items():
             if not state.has(bit):
                 leave_out.update(frames)
+        return self._send(self.codec.state_signals(state), leave_out)
+
+    def send_samples(self, samples, brake_pedal: bool = False, skip: tuple[str, ...] = ()) -> int:
+        """Write the PDUs that carry one step's sensor samples (``estimator.SensorSample``s; a
+        PDU of several units once all of them have a sample); returns how many were sent.
+
+        A unit without a sample this step (its rate, a dropout) leaves its PDUs out; so do a
+        non-finite value and ``skip``, as in ``send_state``.
+        """
+        by_unit = {s.unit: tuple(s.values) for s in samples}
+        return self._send(self.codec.sensor_signals(by_unit, brake_pedal), set(skip))
+
+    def _send(self, pdus: dict[str, dict], leave_out: set) -> int:
         sent = 0
-        for name, values in self.codec.state_signals(state).items():
+        for name, values in pdus.items():
             if name in leave_out or not all(math.isfinite(v) for v in values.values()):
                 continue
             pdu = self.codec.encode(name, self.codec.saturate(name, values), self._counters[name])

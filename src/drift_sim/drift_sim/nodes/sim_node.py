@@ -61,7 +61,8 @@ class SimNode(Node):
         link_set = [o for o in self.declare_parameter('link_set', ['']).value if o]
         can_hold = self.declare_parameter('can_hold_until_engaged', False).value
         # the car's sensor units (config/sim/sensors/<name>.yaml) on vehicle/sensors for the
-        # estimator node, instead of the plant's measured state on vehicle/state; '': the latter
+        # estimator, instead of the plant's measured state on vehicle/state (io link: in the
+        # frames, for the bridge's sensor mode); '': the measured state
         sensors = self.declare_parameter('sensors', '').value
         sensor_set = [o for o in self.declare_parameter('sensor_set', ['']).value if o]
         sensor_faults = [o for o in self.declare_parameter('sensor_faults', ['']).value if o]
@@ -83,9 +84,6 @@ class SimNode(Node):
         self._sensors = self._frame = None
         if sensors:
             from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
-            if io != 'ros':
-                raise ParamError('sim: sensors need io ros (the bridge does not carry the '
-                                 'sensor units yet)')
             self._sensors = Sensors(load_sensor_params(sensors, cfg, sensor_set), self._sim.dt,
                                     self._sim.plant.seed, [parse_fault(f) for f in sensor_faults])
             self._frame = self._sensors.reset(self._sim.truth.state)
@@ -106,7 +104,7 @@ class SimNode(Node):
             self._mode = 'realtime'
             link = load_bridge_params(cfg, parse_overrides(link_set, 'sim.link_set'),
                                       loaded.scenario.vehicle)
-            self._can = CanVehicle(self._sim, CarSide.open(link, cfg), can_hold)
+            self._can = CanVehicle(self._sim, CarSide.open(link, cfg), can_hold, self._sensors)
             self._link_name = link.link()
             self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
             self.create_timer(1.0, self._on_link_diag)
@@ -114,9 +112,10 @@ class SimNode(Node):
             raise ParamError(f"sim: io must be 'ros' or 'link', got {io!r}")
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         kept = kept_qos()   # a recorder matched late still gets the first messages
-        if self._sensors is None:
+        self._state_pub = self._sensor_pub = None   # on a link the bridge publishes them
+        if self._can is None and self._sensors is None:
             self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept)
-        else:   # the estimator node publishes the state
+        elif self._can is None:   # the estimator publishes the state
             self._sensor_pub = self.create_publisher(SensorSamples, 'vehicle/sensors', kept)
         self._truth_pub = self.create_publisher(VehicleState, 'sim/state', kept)
         self._clock_pub = self.create_publisher(Clock, '/clock', kept)
@@ -263,9 +262,9 @@ class SimNode(Node):
 
     def _end(self, ok: bool) -> None:
         """End the run once the recorder has acknowledged the last states (reliable QoS)."""
-        measured = self._state_pub if self._sensors is None else self._sensor_pub
-        for pub in (measured, self._truth_pub, self._clock_pub):
-            pub.wait_for_all_acked(Duration(seconds=1.0))
+        for pub in (self._state_pub, self._sensor_pub, self._truth_pub, self._clock_pub):
+            if pub is not None:
+                pub.wait_for_all_acked(Duration(seconds=1.0))
         self.finished.set_result(ok)
 
     def _step(self):

@@ -1,15 +1,21 @@
-"""The vehicle bridge node: the car's link (CAN, CAN FD, PDUs over UDP) <-> vehicle/state, drift/command."""
+"""The vehicle bridge node: the car's link (CAN, CAN FD, PDUs over UDP) <-> vehicle/state, drift/command.
+
+``sensors:=true``: the sensor units' samples on vehicle/sensors for the state estimator instead
+of vehicle/state (config/bridge.yaml ``sensors``).
+"""
 import sys
 import time
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
-from drift_msgs.msg import DriftCommand, VehicleState
+from drift_msgs.msg import DriftCommand, SensorSamples, VehicleState
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_srvs.srv import SetBool
 
 from drift_control.cycle_watch import CycleWatch
+from drift_control.estimator import SensorSample
+from drift_control.nodes.convert import sensor_samples_to_msg
 from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
@@ -43,6 +49,7 @@ class BridgeNode(Node):
         bus = {k: v for k, v in bus.items() if v}    # '' / 0: keep config/bridge.yaml's
         log_file = self.declare_parameter('log_file', '').value
         auto_arm = self.declare_parameter('auto_arm', False).value   # virtual/udp_multicast only
+        sensors = self.declare_parameter('sensors', False).value
         # link_set: the overrides naming the link (shared with a simulated car), then set
         link_set = [o for o in self.declare_parameter('link_set', ['']).value if o]
         overrides = parse_overrides(link_set + [o for o in self.declare_parameter(
@@ -50,6 +57,8 @@ class BridgeNode(Node):
         overrides.setdefault('bus', {}).update(bus)
         if auto_arm:
             overrides['auto_arm'] = True
+        if sensors:
+            overrides.setdefault('sensors', {})['enabled'] = True
         params = load_bridge_params(cfg, overrides, vehicle or None)
         codec = Codec.load(description_path(params, cfg))
         nmpc = load_nmpc_params(Path(cfg) / 'nmpc.yaml')   # the controller's input limits
@@ -61,7 +70,10 @@ class BridgeNode(Node):
         self._stats, self._diag_period = None, 1.0
         self._ticked = False
         self._cycle = CycleWatch()   # the longest gap between two cycles, for the diagnostics
-        self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept_qos())
+        if params.sensors.enabled:   # the estimator publishes the state
+            self._sensor_pub = self.create_publisher(SensorSamples, 'vehicle/sensors', kept_qos())
+        else:
+            self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
         self.create_subscription(DriftCommand, 'drift/command', self._on_command, QoSProfile(
             depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
@@ -104,7 +116,13 @@ class BridgeNode(Node):
         for msg in self._replay.due(now) if self._replay else ():
             self._gw.receive(msg, now)
         state = self._gw.step(now)
-        if state is not None:
+        if self._gw.sensors is not None:
+            samples = self._gw.take_samples(now)
+            if samples:   # stamped on this node's clock: now minus each sample's age
+                self._sensor_pub.publish(sensor_samples_to_msg(
+                    [SensorSample(s.unit, -s.age, s.values) for s in samples],
+                    self.get_clock().now(), 0.0))
+        elif state is not None:
             self._state_pub.publish(convert.state_to_msg(state, self.get_clock().now().to_msg()))
 
     def _on_diag(self):

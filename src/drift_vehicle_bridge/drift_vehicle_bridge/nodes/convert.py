@@ -64,6 +64,7 @@ def stats_to_diagnostics(stats: dict, previous: dict | None, period: float, stam
     values.update({f'drops/{k}': v for k, v in stats.get('drops', {}).items()})
     values.update({f'tx/{k}': v for k, v in stats['tx'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
+    values.update({f'sensor_samples/{k}': v for k, v in stats.get('sensor_samples', {}).items()})
     status.values = key_values(values)
     return DiagnosticArray(header=Header(stamp=stamp), status=[status])
 
@@ -84,6 +85,7 @@ def car_side_status(stats: dict, released: int, step_gap: dict[str, float],
     values.update({f'rx_fault/{k}': v for k, v in stats['faults'].items()})
     values.update({f'e2e/{k}': v for k, v in stats['e2e'].items()})
     values.update({f'error/{k}': v for k, v in stats['errors'].items()})
+    values.update({f'sensor_samples/{k}': v for k, v in stats.get('sensor_samples', {}).items()})
     status.values = key_values(values)
     return status
 
