@@ -22,8 +22,8 @@ from drift_control.assembly import load_setup
 from drift_control.params import ParamError, config_dir, parse_yaml, split_override, vehicle_file
 from drift_tools.launcher import Launcher
 from drift_control.estimator import ESTIMATORS
-from drift_tools.stack import (CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE, SIM_MODULE,
-                               ESTIMATOR_PLACES, RunOptions, load_stack, node_command, node_env,
+from drift_tools.stack import (CAR_SENSORS, CLOCK_MODES, DISCOVERY_RANGES, RECORDER_MODULE,
+                               SIM_MODULE, ESTIMATOR_PLACES, RunOptions, load_stack, node_command, node_env,
                                with_estimator, write_params_file)
 
 
@@ -91,9 +91,11 @@ def parse_args(argv=None):
                    help='start even if the path asks for a drift the car cannot hold')
     p.add_argument('--sensors', metavar='NAME', default='',
                    help='the simulator publishes the car\'s sensor units '
-                        '(config/sim/sensors/NAME.yaml, e.g. realistic) and an estimator node '
-                        'between it and the controller publishes the state (default: the '
-                        'plant\'s measured state, no estimator)')
+                        '(config/sim/sensors/NAME.yaml, e.g. realistic; on a link graph in the '
+                        'frames, through the bridge) and an estimator between them and the '
+                        'controller publishes the state (default: the plant\'s measured state, '
+                        f'no estimator); {CAR_SENSORS!r}: on a car (--graph vehicle), its own '
+                        'units through the bridge\'s sensor mode')
     p.add_argument('--estimator', choices=ESTIMATORS, default='ekf',
                    help='with --sensors: fuse them (ekf) or pass the newest samples (none)')
     p.add_argument('--estimator-in', choices=ESTIMATOR_PLACES, default='nmpc',
@@ -109,17 +111,28 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def check_sensors(args, cfg_dir: Path) -> None:
-    """The sensor set, its faults and the estimator's parameters, before any node starts."""
+def check_sensors(args, cfg_dir: Path, simulated: bool) -> None:
+    """The sensor set, its faults and the estimator's parameters, before any node starts;
+    ``simulated``: the graph has a simulator (else the car's own sensors, ``--sensors car``)."""
     if not args.sensors:
         if args.sensor_set or args.sensor_fault or args.estimator_set:
             raise ParamError('--sensor-set, --sensor-fault and --estimator-set need --sensors')
         return
     from drift_control.estimator import load_estimator_params
-    from drift_sim.sensors import load_sensor_params, parse_fault
-    load_sensor_params(args.sensors, cfg_dir, args.sensor_set)
-    for fault in args.sensor_fault:
-        parse_fault(fault)
+    if not simulated:
+        if args.sensors != CAR_SENSORS:
+            raise ParamError(f'--sensors {args.sensors}: the graph has no simulator; the car\'s '
+                             f'own sensor units are --sensors {CAR_SENSORS}')
+        if args.sensor_set or args.sensor_fault:
+            raise ParamError('--sensor-set and --sensor-fault simulate sensors: not on a car')
+    elif args.sensors == CAR_SENSORS:
+        raise ParamError(f'--sensors {CAR_SENSORS}: the graph simulates the car; name a sensor '
+                         'set of config/sim/sensors (e.g. realistic)')
+    else:
+        from drift_sim.sensors import load_sensor_params, parse_fault
+        load_sensor_params(args.sensors, cfg_dir, args.sensor_set)
+        for fault in args.sensor_fault:
+            parse_fault(fault)
     if args.estimator == 'ekf':
         load_estimator_params(cfg_dir / 'estimator.yaml', args.estimator_set)
 
@@ -139,7 +152,7 @@ def main(argv=None) -> int:
             vehicle_file(args.vehicle, cfg_dir)   # an unknown vehicle: one line, before any node
         stack = load_stack(args.stack or cfg_dir / 'stack.yaml')
         nodes = stack.graph(args.graph, [n for n in args.nodes.split(',') if n])
-        check_sensors(args, cfg_dir)
+        check_sensors(args, cfg_dir, any(n.module == SIM_MODULE for n in nodes))
         if args.sensors:   # the estimator stage between the simulator and the controller
             nodes = with_estimator(nodes, stack.node_params, args.estimator_in)
         clock = args.clock or stack.defaults.get('clock', 'realtime')

@@ -1,4 +1,6 @@
 """CAN vehicle mode: the simulator behind the car's end of the DBC, the bridge's gateway in front."""
+import contextlib
+
 import can
 import pytest
 
@@ -102,17 +104,24 @@ def test_sensor_samples_cross_the_bus_to_the_bridge(description):
     assert timeouts['DS_POSE' if fd else 'DS_POSE_XY'] == pytest.approx(0.03)
 
 
-def test_a_unit_with_a_lost_frame_waits_for_its_next_complete_sample():
+@contextlib.contextmanager
+def sensor_link(channel: str, overrides=('duration=1.0',)):
+    """The car's end and the bridge in sensor mode on a virtual bus, a scenario's simulator and
+    the realistic sensor units on it: (car, gateway, sim, sensors)."""
     from drift_sim.sensors import Sensors, load_sensor_params
 
     params = load_bridge_params(None, {'sensors': {'enabled': True}})
-    with can.Bus('sim_can_lost', interface='virtual') as car_bus, \
-            can.Bus('sim_can_lost', interface='virtual') as our_bus:
+    with can.Bus(channel, interface='virtual') as car_bus, \
+            can.Bus(channel, interface='virtual') as our_bus:
         car = CarSide(car_bus)
-        gateway = Gateway(our_bus, car.codec, params)
-        sim = Simulator(load_scenario('steady_dry', ['duration=1.0']))
+        sim = Simulator(load_scenario('steady_dry', list(overrides)))
         sensors = Sensors(load_sensor_params('realistic'), sim.dt)
         sensors.reset(sim.truth.state)
+        yield car, Gateway(our_bus, car.codec, params), sim, sensors
+
+
+def test_a_unit_with_a_lost_frame_waits_for_its_next_complete_sample():
+    with sensor_link('sim_can_lost') as (car, gateway, sim, sensors):
         units = []
         for k in range(10):
             sim.step(Command(0.01 * k, sim.state.delta, 0.0, 0.0, Mode.OFF))
@@ -142,3 +151,43 @@ def test_parts_of_a_sample_more_than_max_spread_apart_are_not_joined():
     sensors.receive(Frame(ins[0], 2, values[ins[0]]), 0.025)   # a burst split by a cycle edge
     (sample,) = sensors.take(0.03)
     assert sample.unit == 'ins' and sample.age == pytest.approx(0.005)
+
+
+def test_sensor_mode_judges_the_estimate_so_a_gnss_dropout_does_not_release_the_car():
+    """In sensor mode the modes judge the estimator's state: its INS frames gone for 1 s, the
+    bridge stays ACTIVE on the estimate; the estimate itself gone, it drops to OFF."""
+    from dataclasses import replace
+
+    from drift_control.signals import Validity
+
+    with sensor_link('sim_can_est', STRAIGHT) as (car, gateway, sim, sensors):
+        ins_pdus = car.codec.sensor_frames['ins']
+        modes, own_valid = [], []
+        for k in range(300):
+            now = 0.01 * k
+            command = car.poll_command(now) or Command(now, sim.state.delta, 0.0, 0.0, Mode.OFF)
+            sim.step(command)
+            car.send_samples(sensors.step(sim.truth.state),
+                             skip=ins_pdus if 100 <= k < 200 else ())
+            if k < 250:   # the estimator: here the plant's truth
+                gateway.set_estimate(replace(sim.truth.state, validity=int(Validity.ALL)), now)
+            if k == 20:
+                assert gateway.request_arm(now)[0]
+            if k > 20:
+                gateway.set_command(Command(now, 0.0, 0.0, 800.0, Mode.FULL), now)
+            gateway.step(now)
+            modes.append(gateway.mode.name)
+            own_valid.append(gateway.state.has(Validity.V))
+    assert not any(own_valid[110:200]), 'the frames alone: no speed during the dropout'
+    assert set(modes[25:250]) == {'ACTIVE_FULL'}, 'held on the estimate through the dropout'
+    assert modes[-1] == 'OFF' and gateway.modes.reason.name == 'STATE_INVALID'
+    assert modes.index('OFF', 250) <= 250 + 7, 'within the heartbeat timeout of the last one'
+
+
+def test_sensor_mode_does_not_arm_without_an_estimate():
+    with sensor_link('sim_can_noest', STRAIGHT) as (car, gateway, sim, _):
+        for k in range(10):
+            car.send_state(sim.plant.measure())
+            gateway.step(0.01 * k)
+        assert gateway.state.has(0x7ff), 'the frames are all there'
+        assert gateway.request_arm(0.1) == (False, 'arm refused: STATE_INVALID')

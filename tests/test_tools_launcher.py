@@ -251,8 +251,11 @@ def test_the_estimator_stage_follows_the_samples_source_and_gets_the_sensors(tmp
         'sim', 'nmpc', 'recorder']
     nodes = with_estimator(cfg.graph('sim'), cfg.node_params, 'node')
     assert [n.name for n in nodes] == ['sim', 'estimator', 'reference', 'nmpc', 'recorder']
-    with pytest.raises(ParamError, match='--sensors'):   # a car: no simulated sensors
-        with_estimator(cfg.graph('vehicle'), cfg.node_params)
+    # a car: its own units from the bridge
+    assert [n.name for n in with_estimator(cfg.graph('vehicle'), cfg.node_params)] == [
+        'bridge', 'nmpc', 'recorder']
+    with pytest.raises(ParamError, match='neither a simulator nor a vehicle bridge'):
+        with_estimator([NodeSpec('nmpc', NMPC_MODULE)], cfg.node_params)
     # a simulated car on a link: the samples come from the bridge, the estimator after it
     assert [n.name for n in with_estimator(cfg.graph('sim_can'), cfg.node_params, 'node')] == [
         'can_car', 'can_bridge', 'estimator', 'reference', 'can_nmpc', 'recorder']
@@ -342,3 +345,20 @@ def test_run_stack_settings_errors_are_one_line(capsys, argv, says):
         rc = ended.code
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and says in err[-1], err
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--graph', 'vehicle', '--sensors', 'realistic'],
+     "--sensors realistic: the graph has no simulator; the car's own sensor units are "
+     "--sensors car"),
+    (['--graph', 'sim', '--sensors', 'car'],
+     '--sensors car: the graph simulates the car; name a sensor set'),
+    (['--graph', 'vehicle', '--sensors', 'car', '--sensor-fault', 'ins:dropout:1:2'],
+     '--sensor-set and --sensor-fault simulate sensors: not on a car'),
+])
+def test_run_stack_sensors_match_the_graph_in_one_line(argv, message, capsys):
+    from conftest import load_script
+    assert load_script('run_stack').main([*argv, '--duration', '1']) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f'run_stack: {message}'), err
+    assert len(err.splitlines()) == 1

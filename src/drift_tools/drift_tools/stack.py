@@ -22,6 +22,7 @@ RECORDER_MODULE = 'drift_tools.nodes.recorder_node'
 SIM_MODULE = 'drift_sim.nodes.sim_node'
 ESTIMATOR_MODULE = 'drift_control.nodes.estimator_node'
 BRIDGE_MODULE = 'drift_vehicle_bridge.nodes.bridge_node'
+CAR_SENSORS = 'car'     # --sensors on a car: its own units through the bridge's sensor mode
 # nodes whose ``set`` parameter takes scenario overrides (the bridge's takes bridge.yaml keys)
 SCENARIO_MODULES = (SIM_MODULE, 'drift_control.nodes.reference_node',
                     'drift_control.nodes.nmpc_node', ESTIMATOR_MODULE)
@@ -143,20 +144,19 @@ def with_estimator(nodes: list[NodeSpec], node_params: dict, place: str = 'nmpc'
 
     ``place='nmpc'``: estimator and selector run inside the NMPC node (one DDS hop from the
     samples to the command), the reference node leaves the graph; ``'node'``: an estimator
-    node after the samples' source publishes the state for the reference and NMPC nodes.
-    ParamError for a graph without a simulator (a car's own sensors: the bridge's ``sensors``
-    parameter).
+    node after the samples' source publishes the state for the reference and NMPC nodes. A
+    graph without a simulator (a car) gets the car's own units from its bridge. ParamError for
+    a graph with neither.
     """
     def on_link(n: NodeSpec) -> bool:
         return node_params.get(n.name, {}).get('ros__parameters', {}).get('io', 'ros') == 'link'
 
     sims = [n for n in nodes if n.module == SIM_MODULE]
     sources = [n for n in sims if not on_link(n)]
-    if any(on_link(n) for n in sims):
+    if not sims or any(on_link(n) for n in sims):
         sources += [n for n in nodes if n.module == BRIDGE_MODULE]
     if not sources:
-        raise ParamError('--sensors: the graph has no simulator (on ROS topics, or on a link '
-                         'behind the bridge)')
+        raise ParamError('--sensors: the graph has neither a simulator nor a vehicle bridge')
     if place not in ESTIMATOR_PLACES:
         raise ParamError(f'estimator place {place!r} not in {list(ESTIMATOR_PLACES)}')
     if place == 'nmpc':
@@ -248,7 +248,7 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
         own = (node_params.get(spec.name, {}).get('ros__parameters', {}).get('set') or []) \
             if node_params else []
         params['set'] = [*own, *opts.overrides]
-    if spec.module == SIM_MODULE and opts.sensors:
+    if spec.module == SIM_MODULE and opts.sensors and opts.sensors != CAR_SENSORS:
         params['sensors'] = opts.sensors
         for name in ('sensor_set', 'sensor_faults'):
             if getattr(opts, name):

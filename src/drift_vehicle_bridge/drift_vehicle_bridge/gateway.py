@@ -10,7 +10,7 @@ from dataclasses import replace
 import can
 
 from drift_control.params import ParamError
-from drift_control.signals import Command, VehicleState
+from drift_control.signals import Command, Validity, VehicleState
 from drift_vehicle_bridge.codec import (CMD_STATUS, CMD_STEER, CMD_TORQUE, Codec, steer_signals,
                                         torque_signals)
 from drift_vehicle_bridge.limits import CommandLimiter
@@ -54,7 +54,9 @@ class Gateway:
         steering lock) and the frozen-sensor check: an implausible state is an invalid one.
 
     With ``params.sensors.enabled`` the received PDUs are also reassembled into the sensor
-    units' samples (``take_samples``).
+    units' samples (``take_samples``), and the modes judge the state estimator's state
+    (``set_estimate``) instead of the frames' own: a GNSS dropout the estimator bridges is no
+    reason to release the car, a stale estimate (the controller's process stalled) is.
     """
 
     def __init__(self, link, codec: Codec, params: BridgeParams, checker=None):
@@ -76,6 +78,8 @@ class Gateway:
         self._counters = Counter()
         self._command: Command | None = None
         self._command_time: float | None = None
+        self._estimate: VehicleState | None = None
+        self._estimate_time = -math.inf
         self.been_active = False
         self.discarded_at_start = 0   # PDUs queued before the first cycle, dropped
 
@@ -105,11 +109,31 @@ class Gateway:
         """The sensor units' samples completed since the last call (sensor mode, else none)."""
         return self.sensors.take(now) if self.sensors is not None else []
 
+    def set_estimate(self, state: VehicleState, now: float) -> None:
+        """Sensor mode: the estimator's newest state, arrived at ``now`` [s]."""
+        self._estimate, self._estimate_time = state, now
+
+    def judged_state(self, now: float) -> VehicleState | None:
+        """The state the modes judge at ``now`` [s]: the frames' own, or in sensor mode the
+        estimator's (None once older than the command heartbeat's timeout) with the driver's
+        steering torque and brake pedal, and their validity, from the frames."""
+        own = self.monitor.state(now)
+        if self.sensors is None:
+            return own
+        est = self._estimate
+        if est is None or own is None \
+                or now - self._estimate_time > self.params.mode.heartbeat_timeout:
+            return None
+        driver = Validity.STEERING_TORQUE | Validity.BRAKE_PEDAL
+        return replace(est, stamp=now, steering_torque=own.steering_torque,
+                       brake_pedal=own.brake_pedal,
+                       validity=(est.validity & ~driver) | (own.validity & driver))
+
     def request_arm(self, now: float) -> tuple[bool, str]:
         """Explicit arm request (operator); returns (armed, why)."""
         if self.transport is None:
             return False, 'arm refused: replay (no link)'
-        return self.modes.request_arm(self.monitor.state(now), now)
+        return self.modes.request_arm(self.judged_state(now), now)
 
     def disarm(self) -> None:
         self.modes.disarm()
@@ -134,9 +158,10 @@ class Gateway:
         if self.params.auto_arm and self.mode == BridgeMode.OFF and not self.been_active:
             self.request_arm(now)    # retried while refused: arms once the state allows it
         was_active = self.mode.active
-        mode = self.modes.update(now, self.state, self._command, self._command_time)
+        judged = self.judged_state(now)
+        mode = self.modes.update(now, judged, self._command, self._command_time)
         if mode.active and not was_active:
-            self.limiter.reset(self.state.delta, self.state.drive_torque)
+            self.limiter.reset(judged.delta, judged.drive_torque)
             self.been_active = True
         self._transmit(mode)
         return self.state

@@ -1,7 +1,8 @@
 """The vehicle bridge node: the car's link (CAN, CAN FD, PDUs over UDP) <-> vehicle/state, drift/command.
 
 ``sensors:=true``: the sensor units' samples on vehicle/sensors for the state estimator instead
-of vehicle/state (config/bridge.yaml ``sensors``).
+of vehicle/state, whose estimate (on vehicle/state) the modes then judge (config/bridge.yaml
+``sensors``).
 """
 import sys
 import time
@@ -15,7 +16,7 @@ from std_srvs.srv import SetBool
 
 from drift_control.cycle_watch import CycleWatch
 from drift_control.estimator import SensorSample
-from drift_control.nodes.convert import sensor_samples_to_msg
+from drift_control.nodes.convert import decode, sensor_samples_to_msg, state_from_msg
 from drift_control.nodes.qos import kept_qos
 from drift_control.nodes.runtime_params import lock_parameters
 from drift_control.nodes.priority import raise_real_time
@@ -70,8 +71,10 @@ class BridgeNode(Node):
         self._stats, self._diag_period = None, 1.0
         self._ticked = False
         self._cycle = CycleWatch()   # the longest gap between two cycles, for the diagnostics
-        if params.sensors.enabled:   # the estimator publishes the state
+        if params.sensors.enabled:   # the estimator publishes the state; the modes judge it
             self._sensor_pub = self.create_publisher(SensorSamples, 'vehicle/sensors', kept_qos())
+            self.create_subscription(VehicleState, 'vehicle/state', self._on_estimate, QoSProfile(
+                depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         else:
             self._state_pub = self.create_publisher(VehicleState, 'vehicle/state', kept_qos())
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
@@ -90,6 +93,11 @@ class BridgeNode(Node):
 
     def _on_command(self, msg):
         self._gw.set_command(convert.command_from_msg(msg), time.monotonic())
+
+    def _on_estimate(self, msg):
+        state = decode(state_from_msg, msg, self.get_logger())
+        if state is not None:
+            self._gw.set_estimate(state, time.monotonic())
 
     def _on_arm(self, request, response):
         if request.data:
