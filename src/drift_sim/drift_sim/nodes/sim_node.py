@@ -164,13 +164,24 @@ class SimNode(Node):
             self._recorder_matched = matched
 
     def _recorder_ready(self) -> bool:
-        """The controller is up (our inputs have publishers) and the recorder is matched with
-        every publisher the graph has of every topic it records: nothing of the run is lost."""
+        """The controller is up (our inputs have publishers), the recorder is matched with
+        every publisher the graph has of every topic it records, and our publishers with every
+        subscriber the graph has of theirs: nothing of the run is lost, and t = 0 reaches the
+        recorder when it is published, not later from the kept history (its log time would be
+        late: a topic's rate in the bag read 101 Hz)."""
         if self._recorder_matched is None or \
                 any(sub.get_publisher_count() == 0 for sub in self._inputs):
             return False
+        if self._unmatched():
+            return False
         return all(self.count_publishers(topic) <= n
                    for topic, n in self._recorder_matched.items())
+
+    def _unmatched(self) -> list[str]:
+        """Our topics with a subscriber in the graph that our publisher has not matched yet."""
+        ours = (self._state_pub, self._sensor_pub, self._truth_pub, self._clock_pub)
+        return [pub.topic_name for pub in ours if pub is not None
+                and pub.get_subscription_count() < self.count_subscribers(pub.topic_name)]
 
     def _on_command(self, msg):
         command = convert.decode(convert.command_from_msg, msg, self.get_logger())
@@ -195,9 +206,10 @@ class SimNode(Node):
         if self._wait_recorder:   # nothing of the run may go unrecorded
             if not self._recorder_ready():
                 if time.monotonic() - self._started > self._startup:
-                    return self._fail(f'the recorder did not hear every publisher within '
-                                      f'startup_timeout {self._startup:g} s '
-                                      f'(it reports {self._recorder_matched})')
+                    return self._fail(f'the recorder and the graph did not match within '
+                                      f'startup_timeout {self._startup:g} s (the recorder '
+                                      f'reports {self._recorder_matched}; ours unmatched: '
+                                      f'{self._unmatched()})')
                 return
             self._wait_recorder = False
             if self._can is not None:
