@@ -141,3 +141,18 @@ def test_mirrored_path_mirrors_the_projection():
         assert b.e_y == pytest.approx(-a.e_y, abs=1e-9)
         assert b.heading_error == pytest.approx(-a.heading_error, abs=1e-9)
         assert b.K == pytest.approx(-a.K, abs=1e-12)
+
+
+def test_a_car_lost_on_an_open_path_is_not_handed_back_to_a_stretch_it_passed():
+    """Off the exit straight by 14 m near its start, the car is nearer the drift circle it left:
+    the global search keeps it on the straight (progress), not on the circle 150 m back."""
+    from drift_control.params import config_dir
+    path = P.load_path_file(config_dir() / 'paths' / 'circle_exit_15.yaml')
+    frenet = Frenet(path, lost_distance=5.0)
+    j = int(round(260.0 / path.ds))   # on the straight, 20 m after the clothoid
+    frenet.reset(s_hint=j * path.ds)
+    frenet.project(path.x[j], path.y[j], path.psi[j])
+    nx, ny = -math.sin(path.psi[j]), math.cos(path.psi[j])   # left normal
+    fp = frenet.project(path.x[j] + 16.0 * nx, path.y[j] + 16.0 * ny, path.psi[j] + 1.0)
+    assert frenet.global_searches == 1
+    assert fp.s > 250.0, fp.s

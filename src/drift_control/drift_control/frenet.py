@@ -118,7 +118,10 @@ class Frenet:
     def _global(self, px, py, course):
         p = self.path
         self.global_searches += 1
-        j, dist, _ = self._nearest(px, py, 0, p.n - 1, course)
+        # an open path is driven forward: a car lost after some progress is not handed back to
+        # a stretch it has passed (a drift circle before the exit straight it left)
+        lo = 0 if p.closed or self._j is None else min(max(self._j - self._back, 0), p.n - 1)
+        j, dist, _ = self._nearest(px, py, lo, p.n - 1, course)
         if p.closed and self._j is not None:   # keep the lap nearest to the previous one
             j += p.n * round((self._j - j) / p.n)
         return j, dist
