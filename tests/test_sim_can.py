@@ -153,35 +153,54 @@ def test_parts_of_a_sample_more_than_max_spread_apart_are_not_joined():
     assert sample.unit == 'ins' and sample.age == pytest.approx(0.005)
 
 
-def test_sensor_mode_judges_the_estimate_so_a_gnss_dropout_does_not_release_the_car():
-    """In sensor mode the modes judge the estimator's state: its INS frames gone for 1 s, the
-    bridge stays ACTIVE on the estimate; the estimate itself gone, it drops to OFF."""
+def _drive_armed(link, steps: int, skip, estimate_until: int):
+    """Sensor mode with the truth as the estimator's state until ``estimate_until``, armed at
+    step 20 and commanded after; ``skip(k)``: the PDUs left out at step k. Per step: the mode,
+    and whether the frames alone had a speed."""
     from dataclasses import replace
 
     from drift_control.signals import Validity
 
-    with sensor_link('sim_can_est', STRAIGHT) as (car, gateway, sim, sensors):
-        ins_pdus = car.codec.sensor_frames['ins']
-        modes, own_valid = [], []
-        for k in range(300):
-            now = 0.01 * k
-            command = car.poll_command(now) or Command(now, sim.state.delta, 0.0, 0.0, Mode.OFF)
-            sim.step(command)
-            car.send_samples(sensors.step(sim.truth.state),
-                             skip=ins_pdus if 100 <= k < 200 else ())
-            if k < 250:   # the estimator: here the plant's truth
-                gateway.set_estimate(replace(sim.truth.state, validity=int(Validity.ALL)), now)
-            if k == 20:
-                assert gateway.request_arm(now)[0]
-            if k > 20:
-                gateway.set_command(Command(now, 0.0, 0.0, 800.0, Mode.FULL), now)
-            gateway.step(now)
-            modes.append(gateway.mode.name)
-            own_valid.append(gateway.state.has(Validity.V))
-    assert not any(own_valid[110:200]), 'the frames alone: no speed during the dropout'
+    car, gateway, sim, sensors = link
+    modes, own_speed = [], []
+    for k in range(steps):
+        now = 0.01 * k
+        command = car.poll_command(now) or Command(now, sim.state.delta, 0.0, 0.0, Mode.OFF)
+        sim.step(command)
+        car.send_samples(sensors.step(sim.truth.state), skip=skip(k))
+        if k < estimate_until:
+            gateway.set_estimate(replace(sim.truth.state, validity=int(Validity.ALL)), now)
+        if k == 20:
+            assert gateway.request_arm(now)[0]
+        if k > 20:
+            gateway.set_command(Command(now, 0.0, 0.0, 800.0, Mode.FULL), now)
+        gateway.step(now)
+        modes.append(gateway.mode.name)
+        own_speed.append(gateway.state.has(Validity.V))
+    return modes, own_speed, gateway
+
+
+def test_sensor_mode_judges_the_estimate_so_a_gnss_dropout_does_not_release_the_car():
+    """In sensor mode the modes judge the estimator's state: its INS frames gone for 1 s, the
+    bridge stays ACTIVE on the estimate; the estimate itself gone, it drops to OFF."""
+    with sensor_link('sim_can_est', STRAIGHT) as link:
+        ins_pdus = link[0].codec.sensor_frames['ins']
+        modes, own_speed, gateway = _drive_armed(
+            link, 300, lambda k: ins_pdus if 100 <= k < 200 else (), estimate_until=250)
+    assert not any(own_speed[110:200]), 'the frames alone: no speed during the dropout'
     assert set(modes[25:250]) == {'ACTIVE_FULL'}, 'held on the estimate through the dropout'
     assert modes[-1] == 'OFF' and gateway.modes.reason.name == 'STATE_INVALID'
     assert modes.index('OFF', 250) <= 250 + 7, 'within the heartbeat timeout of the last one'
+
+
+def test_sensor_mode_still_drops_when_a_unit_the_estimator_cannot_carry_goes_silent():
+    """The steering angle's frames gone: no estimate stands in for them, the bridge drops."""
+    with sensor_link('sim_can_steer', STRAIGHT) as link:
+        modes, _, gateway = _drive_armed(
+            link, 120, lambda k: ('DS_STEERING',) if k >= 80 else (), estimate_until=120)
+    assert set(modes[25:80]) == {'ACTIVE_FULL'}
+    assert modes[-1] == 'OFF' and gateway.modes.reason.name == 'STATE_INVALID'
+    assert modes.index('OFF', 80) <= 80 + 4, 'within the frame timeout'
 
 
 def test_sensor_mode_does_not_arm_without_an_estimate():
@@ -191,3 +210,4 @@ def test_sensor_mode_does_not_arm_without_an_estimate():
             gateway.step(0.01 * k)
         assert gateway.state.has(0x7ff), 'the frames are all there'
         assert gateway.request_arm(0.1) == (False, 'arm refused: STATE_INVALID')
+

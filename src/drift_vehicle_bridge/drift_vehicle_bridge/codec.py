@@ -327,6 +327,5 @@ def command_from_signals(status: dict, steer: dict | None, torque: dict | None,
 
 __all__ = ['CMD_STATUS', 'CMD_STEER', 'CMD_TORQUE', 'COMMAND_FRAMES', 'COMMAND_SIGNALS', 'Codec',
            'Fault', 'Frame', 'FrameError', 'SENSOR_SIGNALS', 'STATE_SIGNALS', 'VALIDITY_SIGNALS',
-           'WHEELS',
-           'command_from_signals', 'load_description', 'signal_bits', 'state_from_fields',
-           'steer_signals', 'torque_signals']
+           'WHEELS', 'command_from_signals', 'load_description', 'signal_bits',
+           'state_from_fields', 'steer_signals', 'torque_signals']

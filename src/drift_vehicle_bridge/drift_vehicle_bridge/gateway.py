@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 
 MAX_FRAMES_PER_CYCLE = 1000    # a babbling bus must not starve the cycle [PDUs]
 NO_STEER = {'steer_request': 0, 'delta_req': 0.0, 'delta_rate_req': 0.0}
+# what the estimator carries through a GNSS/INS dropout (the IMU and the wheels go on)
+INS_BRIDGED = Validity.V | Validity.BETA | Validity.VX_VY | Validity.R | Validity.POSE
 NO_TORQUE = {'torque_request': 0, 'torque_req': 0.0}
 
 
@@ -116,7 +118,8 @@ class Gateway:
     def judged_state(self, now: float) -> VehicleState | None:
         """The state the modes judge at ``now`` [s]: the frames' own, or in sensor mode the
         estimator's (None once older than the command heartbeat's timeout) with the driver's
-        steering torque and brake pedal, and their validity, from the frames."""
+        steering torque and brake pedal from the frames. Valid where the estimate is and, but
+        for what the estimator carries through a GNSS/INS dropout, the frames are too."""
         own = self.monitor.state(now)
         if self.sensors is None:
             return own
@@ -124,10 +127,9 @@ class Gateway:
         if est is None or own is None \
                 or now - self._estimate_time > self.params.mode.heartbeat_timeout:
             return None
-        driver = Validity.STEERING_TORQUE | Validity.BRAKE_PEDAL
         return replace(est, stamp=now, steering_torque=own.steering_torque,
                        brake_pedal=own.brake_pedal,
-                       validity=(est.validity & ~driver) | (own.validity & driver))
+                       validity=est.validity & (own.validity | INS_BRIDGED))
 
     def request_arm(self, now: float) -> tuple[bool, str]:
         """Explicit arm request (operator); returns (armed, why)."""
