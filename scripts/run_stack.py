@@ -205,7 +205,8 @@ def main(argv=None) -> int:
                           estimator_in=args.estimator_in,
                           sensor_set=tuple(args.sensor_set),
                           sensor_faults=tuple(args.sensor_fault),
-                          estimator_set=tuple(args.estimator_set))
+                          estimator_set=tuple(args.estimator_set),
+                          graph_nodes=tuple(n.name for n in nodes if n.critical))
         if args.sim_duration and not any(n.module == SIM_MODULE for n in nodes):
             raise ParamError(f'--sim-duration: graph {args.graph!r} has no simulator to end it')
         if opts.scenario:   # the controller's configuration and map, checked before any node

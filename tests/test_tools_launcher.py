@@ -362,3 +362,15 @@ def test_run_stack_sensors_match_the_graph_in_one_line(argv, message, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f'run_stack: {message}'), err
     assert len(err.splitlines()) == 1
+
+
+def test_a_recorded_run_waits_for_every_critical_node_of_the_launch(tmp_path):
+    opts = RunOptions(params_file=tmp_path / 'p.yaml', config_dir=tmp_path,
+                      bag_dir=tmp_path / 'bag', graph_nodes=('recorder', 'sim', 'nmpc'))
+    p_sim = _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'), opts))
+    assert yaml.safe_load(p_sim['wait_nodes']) == ['recorder', 'nmpc']
+    p_rec = _params(node_command(NodeSpec('recorder', 'drift_tools.nodes.recorder_node'), opts))
+    assert 'wait_nodes' not in p_rec
+    unrecorded = dataclasses.replace(opts, bag_dir=None)
+    assert 'wait_nodes' not in _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'),
+                                                    unrecorded))

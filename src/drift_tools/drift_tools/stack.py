@@ -192,6 +192,8 @@ class RunOptions:
     sensor_set: tuple = ()                 # sensor set overrides key=value
     sensor_faults: tuple = ()              # unit[.channel]:kind:start:end[:value]
     estimator_set: tuple = ()              # config/estimator.yaml overrides key=value
+    graph_nodes: tuple = ()                # the critical nodes' names: a recorded run starts
+                                           # once the simulator sees every one of them
 
     def __post_init__(self):
         if self.clock not in CLOCK_MODES:
@@ -238,6 +240,9 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
         params['duration'] = float(opts.sim_duration)
     if spec.module == SIM_MODULE and opts.bag_dir is not None:
         params['wait_recorder'] = True   # lock-step: no step before the bag records the truth
+        others = [n for n in opts.graph_nodes if n != spec.name]
+        if others:   # nor before the publishers of every node are known (and so compared)
+            params['wait_nodes'] = others
     if spec.module == RECORDER_MODULE and opts.bag_dir is not None:
         params['bag_dir'] = str(opts.bag_dir)
         if opts.run_info_file is not None:

@@ -56,6 +56,9 @@ class SimNode(Node):
         # lock-step: the first step waits until the ground truth has a subscriber (the recorder
         # of a run_stack --bag run, which discovers topics by polling and may join late)
         self._wait_recorder = self.declare_parameter('wait_recorder', False).value
+        # ... and until every node of the launch is seen: a publisher not yet discovered here
+        # would count as none when the recorder's matches are compared (its samples lost)
+        self._wait_nodes = [n for n in self.declare_parameter('wait_nodes', ['']).value if n]
         io = self.declare_parameter('io', 'ros').value
         # the bridge.yaml overrides naming the link, the same ones the bridge node gets
         link_set = [o for o in self.declare_parameter('link_set', ['']).value if o]
@@ -172,10 +175,15 @@ class SimNode(Node):
         if self._recorder_matched is None or \
                 any(sub.get_publisher_count() == 0 for sub in self._inputs):
             return False
-        if self._unmatched():
+        if self._unmatched() or self._unseen():
             return False
         return all(self.count_publishers(topic) <= n
                    for topic, n in self._recorder_matched.items())
+
+    def _unseen(self) -> list[str]:
+        """The launch's nodes not discovered yet."""
+        seen = set(self.get_node_names())
+        return [n for n in self._wait_nodes if n not in seen]
 
     def _unmatched(self) -> list[str]:
         """Our topics with a subscriber in the graph that our publisher has not matched yet."""
@@ -209,7 +217,8 @@ class SimNode(Node):
                     return self._fail(f'the recorder and the graph did not match within '
                                       f'startup_timeout {self._startup:g} s (the recorder '
                                       f'reports {self._recorder_matched}; ours unmatched: '
-                                      f'{self._unmatched()})')
+                                      f'{self._unmatched()}; nodes not seen: '
+                                      f'{self._unseen()})')
                 return
             self._wait_recorder = False
             if self._can is not None:
