@@ -211,3 +211,15 @@ def test_sensor_mode_does_not_arm_without_an_estimate():
         assert gateway.state.has(0x7ff), 'the frames are all there'
         assert gateway.request_arm(0.1) == (False, 'arm refused: STATE_INVALID')
 
+
+
+def test_the_bridges_sensor_timing_is_the_simulated_cars():
+    """config/bridge.yaml's latencies and rates describe the car the link graphs simulate with
+    config/sim/sensors/realistic.yaml: if one is changed alone, the bridge stamps the simulated
+    samples wrongly and times their frames out at the wrong rate."""
+    from drift_sim.sensors import load_sensor_params
+
+    sim, bridge = load_sensor_params('realistic'), load_bridge_params().sensors
+    for unit in SENSOR_SIGNALS:
+        assert bridge.latency[unit] == pytest.approx(getattr(sim, unit).latency), unit
+        assert bridge.rate[unit] == pytest.approx(getattr(sim, unit).rate), unit
