@@ -99,9 +99,9 @@ def test_sensor_samples_cross_the_bus_to_the_bridge(description):
         assert expected - 3 <= received.get(unit, 0) <= expected, unit
     assert gateway.stats()['sensor_samples'] == received
     assert gateway.state.validity == 0x7ff, 'the 50 Hz frames within their own timeout'
-    timeouts = gateway.monitor._timeout
-    assert timeouts['DS_CHASSIS' if fd else 'DS_WHEELS_FRONT'] == pytest.approx(0.06)
-    assert timeouts['DS_POSE' if fd else 'DS_POSE_XY'] == pytest.approx(0.03)
+    timeout = gateway.monitor.timeout
+    assert timeout('DS_CHASSIS' if fd else 'DS_WHEELS_FRONT') == pytest.approx(0.06)
+    assert timeout('DS_POSE' if fd else 'DS_POSE_XY') == pytest.approx(0.03)
 
 
 @contextlib.contextmanager

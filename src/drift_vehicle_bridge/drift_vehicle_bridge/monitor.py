@@ -48,6 +48,10 @@ class StateMonitor:
             if seen is None or now - seen > timeout:
                 self.checker.no_new_data(name)
 
+    def timeout(self, name: str) -> float:
+        """How long PDU ``name`` may be missing before its signals go invalid [s]."""
+        return self._timeout[name]
+
     def fresh(self, name: str, now: float) -> bool:
         seen = self._seen.get(name)
         return seen is not None and now - seen <= self._timeout[name] \
