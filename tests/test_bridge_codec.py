@@ -151,6 +151,10 @@ def test_a_description_the_codec_cannot_serve_is_one_line(tmp_path):
     for broken, match in (
             (text.replace(' SG_ beta : 32|16@1- (0.001,0) [-3.141|3.141] "rad" DRIFT_STACK\n', ''),
              r'state signal.*beta'),
+            (text.replace(' SG_ beta : 32|16@1- (0.001,0)',
+                          ' SG_ r_imu : 48|16@1- (0.0005,0) [-10|10] "rad/s" DRIFT_STACK\n'
+                          ' SG_ beta : 32|16@1- (0.001,0)'),
+             r'sensor signal r_imu in both DS_YAW and DS_ACCEL'),
             (text.replace('BA_ "E2E_DataID" BO_ 273 2577;', 'BA_ "E2E_DataID" BO_ 273 2576;'),
              r'data ID 2576 not unique'),
             (text.replace('BA_DEF_DEF_ "E2E_Profile" "P01";', 'BA_DEF_DEF_ "E2E_Profile" "P99";'),

@@ -139,8 +139,15 @@ class Codec:
     def _sensor_frames(self) -> tuple[dict[str, tuple[str, ...]], dict[str, tuple[str, ...]]]:
         """Sensor unit -> the GATEWAY PDUs carrying its signals, for the units whose every
         signal a PDU carries; and unit -> its signals no PDU carries, for the others."""
-        carriers = {sig.name: spec.name for spec in self._specs.values()
-                    if STATE_SENDER in spec.senders for sig in self._payload[spec.name]}
+        wanted = {s for sigs in SENSOR_SIGNALS.values() for s in sigs}
+        carriers: dict[str, str] = {}
+        for spec in self._specs.values():
+            if STATE_SENDER not in spec.senders:
+                continue
+            for sig in self._payload[spec.name]:
+                if sig.name in wanted and carriers.setdefault(sig.name, spec.name) != spec.name:
+                    raise ParamError(f'{self.description.source}: sensor signal {sig.name} in '
+                                     f'both {carriers[sig.name]} and {spec.name}')
         frames, missing = {}, {}
         for unit, sigs in SENSOR_SIGNALS.items():
             absent = tuple(s for s in sigs if s not in carriers)
