@@ -8,10 +8,11 @@ import pytest
 
 from drift_control.equilibrium import solve_equilibrium
 from drift_control.nmpc import Nmpc, NmpcStatus, _shift_rows, reference_rows
-from drift_control.ocp import NXO, NmpcParams, Ocp, SolverParams, load_nmpc_params
+from drift_control.ocp import NS, NXO, NmpcParams, Ocp, SolverParams, load_nmpc_params
 from drift_control.params import ParamError, load_surface, load_vehicle
 from drift_control.signals import Direction, Equilibrium, Mode, Reference, Validity, VehicleState
-from drift_control.vehicle import X, VehicleModel
+from drift_control.tyre import simple_peak_slip
+from drift_control.vehicle import NU, X, VehicleModel
 
 TS = 0.02
 
@@ -168,6 +169,40 @@ def test_a_slow_car_is_not_braked_further_in_a_drift(vp, params, eq30):
                        mode=Mode.TORQUE_ONLY)
     assert torque_only._braking_bound(slow[0], drift) == 0.0, 'a driver steering: guarded too'
     assert off.step(measure(slow, 0.0), drift, 0.0).predicted_inputs[:, 1].min() < -100.0
+
+
+def test_front_slip_band_keeps_the_plans_front_tyre_near_its_peak(vp, params, eq30, plant):
+    """front_slip_max: from the warm start's front axle course, stages 1 .. N may steer at most
+    the band off it; from a measured steering outside the band the bounds close in at the
+    steering rate (each stage reachable from the last, so the QP stays feasible). The drift is
+    held as without the band."""
+    ctrl = Nmpc(vp, dataclasses.replace(params, front_slip_max=1.5))
+    band = 1.5 * simple_peak_slip(vp.front_tyre.lateral)
+    assert math.radians(8.0) < band / 1.5 < math.radians(9.0)   # B 14, C 1.4: ~8.5 deg
+    x = np.array(perturbed_start(eq30))[:6].tolist() + [eq30.T_R, eq30.T_R]
+    ref = Reference(0.0, eq30, Direction.LEFT)
+    w0 = ctrl._cold_guess(np.array(x), ref)
+    lock, step = ctrl.bounds.delta_max, ctrl.bounds.delta_dot_max * params.dt
+    V, beta, r = x[0], x[1], x[2]
+    course = math.atan2(V * math.sin(beta) + vp.a * r, V * math.cos(beta))
+    delta_0 = course + band + 5 * step   # steered 5 stages' rate beyond the band, into the turn
+    lbw, ubw = ctrl.ocp.bounds_for(np.array(x))
+    ctrl._front_slip_band(lbw, ubw, w0, delta_0)
+    nz, N = NS + NU, params.N
+    lo, hi = lbw[X.DELTA + nz::nz], ubw[X.DELTA + nz::nz]
+    assert len(lo) == N
+    assert lo[0] == hi[0] == pytest.approx(delta_0 - step, rel=1e-5)
+    assert hi[4] == pytest.approx(course + band, abs=1e-6), 'the band reached in 5 stages'
+    edges = np.concatenate([[delta_0], lo])
+    assert np.all(np.diff(edges) >= -step * (1 + 1e-9)), 'closing in no faster than the rate'
+    assert lo[-1] == pytest.approx(max(course - band, -lock)) and hi[-1] == pytest.approx(course + band)
+    assert np.all(lo <= hi) and np.all(lo >= -lock) and np.all(hi <= lock)
+    xs, results = run_loop(ctrl, plant, eq30, perturbed_start(eq30), 3.0, mu_plant=1.0)
+    assert all(res.status == NmpcStatus.OK for res in results)
+    assert abs(np.degrees(xs[-1, 1] - eq30.beta)) < 1.0
+    torque_only = Nmpc(vp, dataclasses.replace(params, front_slip_max=1.5),
+                       mode=Mode.TORQUE_ONLY)
+    assert torque_only._front_slip == 0.0, 'the driver steers: no band on his steering'
 
 
 def test_paper_formulation_converges_too(vp, params, plant, eq30):

@@ -27,7 +27,8 @@ from drift_control.params import VehicleParams
 from drift_control.plausibility import InputChecker
 from drift_control.signals import Command, Direction, Mode, Reference, Validity, VehicleState
 from drift_control.supervisor import Supervisor, SupervisorParams
-from drift_control.vehicle import U, X
+from drift_control.tyre import simple_peak_slip
+from drift_control.vehicle import NU, U, X
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +102,11 @@ class Nmpc:
         self._solver = make_solver(self.ocp, nmpc_params.solver)
         self._period = period_function(self.ocp, nmpc_params.solver)
         self._hold = nmpc_params.torque_only_hold_stages if mode == Mode.TORQUE_ONLY else 0
+        # the plan's front slip band [rad] and the front axle's distance from the CoG [m]
+        self._front_slip = (nmpc_params.front_slip_max
+                            * simple_peak_slip(vehicle_params.front_tyre.lateral)
+                            if mode == Mode.FULL and nmpc_params.front_slip_max > 0 else 0.0)
+        self._a = vehicle_params.a
         self.supervisor = Supervisor(supervisor) if supervisor is not None else None
         self.inputs = InputChecker(vehicle_params, nmpc_params.inputs)
         self.reset()
@@ -236,6 +242,8 @@ class Nmpc:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
         else:
             w0, iterations = self._warm_guess(), self.params.solver.max_iter
+            if self._front_slip > 0.0:
+                self._front_slip_band(lbw, ubw, w0, x_init[X.DELTA])
         w0[:NS] = x_init
         t0 = time.perf_counter()
         try:
@@ -273,6 +281,29 @@ class Nmpc:
             return None
         share = (V / ref.target.V - low) / max(high - low, 1e-9)
         return min(1.0, max(0.0, share)) * self.bounds.T_R_min
+
+    def _front_slip_band(self, lbw, ubw, w0, delta_0: float) -> None:
+        """Steering bounds of stages 1 .. N that keep the front slip angle within the band.
+
+        Past its peak slip the front tyre's force hardly grows with the steering, and that is
+        where its model is least certain: plans that steer on to the lock there (to rotate the
+        car or scrub speed) lean on what a plant with another front does not share. The front
+        axle's course (``delta - alpha_F`` of ``vehicle.slips``) comes from the warm start, the
+        real-time iteration's linearisation point; each stage's bound is cut to what the
+        steering rate can reach from the last, so the QP stays feasible.
+        """
+        nz, lock = NS + NU, self.bounds.delta_max
+        step = self.bounds.delta_dot_max * self.params.dt * (1.0 - 1e-6)
+        lo = hi = delta_0
+        for k in range(1, self.params.N + 1):
+            i = k * nz
+            V, beta, r = w0[i + X.V], w0[i + X.BETA], w0[i + X.R]
+            course = math.atan2(V * math.sin(beta) + self._a * r,
+                                max(V * math.cos(beta), 0.1))   # of the front axle
+            reach_lo, reach_hi = max(lo - step, -lock), min(hi + step, lock)
+            lo = max(reach_lo, min(course - self._front_slip, reach_hi))
+            hi = min(reach_hi, max(course + self._front_slip, reach_lo))
+            lbw[i + X.DELTA], ubw[i + X.DELTA] = lo, hi
 
     # --- warm start and failures -----------------------------------------------------------
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:

@@ -142,6 +142,8 @@ class NmpcParams:
     inputs: InputLimits = field(default_factory=InputLimits)   # plausible measured states
     brake_speed_ratio: tuple[float, float] = (0.0, 0.0)   # V / V_ref: no braking torque below
                                     # the first, the full braking bound above the second (off: 0)
+    front_slip_max: float = 0.0     # the plan's steering keeps the front slip angle within
+                                    # this many times the model's front peak slip (0: off)
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
@@ -156,6 +158,7 @@ class NmpcParams:
         require(0 <= self.torque_only_hold_stages < self.N, 'nmpc.torque_only_hold_stages',
                 'must be in [0, N)')
         require(self.torque_lag >= 0, 'nmpc.torque_lag', 'must be >= 0')
+        require(self.front_slip_max >= 0, 'nmpc.front_slip_max', 'must be >= 0 (0: off)')
         low, high = self.brake_speed_ratio if len(self.brake_speed_ratio) == 2 else (-1, -1)
         require(0 <= low <= high, 'nmpc.brake_speed_ratio',
                 'must be [low, high] with 0 <= low <= high ([0, 0]: off)')

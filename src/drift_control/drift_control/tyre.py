@@ -102,6 +102,12 @@ def longitudinal_peak_slip(f_z: float, p: CombinedTyreParams, mu: float = 1.0) -
     return _argmax(lambda k: float(combined_forces(0.0, k, f_z, p, mu).Fx), 0.0, 1.0)
 
 
+def simple_peak_slip(p: SimpleMF) -> float:
+    """Slip at which a simplified Magic Formula force peaks [rad or -] (the same at any load
+    and friction: they scale the force, not its shape)."""
+    return _argmax(lambda x: float(magic_formula(x, p.B, p.C, p.E)), 0.0, 1.2)
+
+
 def lateral_peak_slip(f_z: float, p: CombinedTyreParams, mu: float = 1.0) -> float:
     """Slip angle at which the pure lateral force peaks, at load ``f_z`` [rad]."""
     return _argmax(lambda a: float(combined_forces(a, 0.0, f_z, p, mu).Fy), 0.0, 1.2)
