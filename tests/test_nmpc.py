@@ -12,7 +12,7 @@ from drift_control.ocp import NS, NXO, NmpcParams, Ocp, SolverParams, load_nmpc_
 from drift_control.params import ParamError, load_surface, load_vehicle
 from drift_control.signals import Direction, Equilibrium, Mode, Reference, Validity, VehicleState
 from drift_control.tyre import simple_peak_slip
-from drift_control.vehicle import NU, X, VehicleModel
+from drift_control.vehicle import NU, X, VehicleModel, front_axle_course
 
 TS = 0.02
 
@@ -184,7 +184,7 @@ def test_front_slip_band_keeps_the_plans_front_tyre_near_its_peak(vp, params, eq
     w0 = ctrl._cold_guess(np.array(x), ref)
     lock, step = ctrl.bounds.delta_max, ctrl.bounds.delta_dot_max * params.dt
     V, beta, r = x[0], x[1], x[2]
-    course = math.atan2(V * math.sin(beta) + vp.a * r, V * math.cos(beta))
+    course = front_axle_course(V, beta, r, vp.a)
     delta_0 = course + band + 5 * step   # steered 5 stages' rate beyond the band, into the turn
     lbw, ubw = ctrl.ocp.bounds_for(np.array(x))
     ctrl._front_slip_band(lbw, ubw, w0, delta_0)
@@ -195,7 +195,8 @@ def test_front_slip_band_keeps_the_plans_front_tyre_near_its_peak(vp, params, eq
     assert hi[4] == pytest.approx(course + band, abs=1e-6), 'the band reached in 5 stages'
     edges = np.concatenate([[delta_0], lo])
     assert np.all(np.diff(edges) >= -step * (1 + 1e-9)), 'closing in no faster than the rate'
-    assert lo[-1] == pytest.approx(max(course - band, -lock)) and hi[-1] == pytest.approx(course + band)
+    assert lo[-1] == pytest.approx(max(course - band, -lock))
+    assert hi[-1] == pytest.approx(course + band)
     assert np.all(lo <= hi) and np.all(lo >= -lock) and np.all(hi <= lock)
     xs, results = run_loop(ctrl, plant, eq30, perturbed_start(eq30), 3.0, mu_plant=1.0)
     assert all(res.status == NmpcStatus.OK for res in results)

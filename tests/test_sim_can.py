@@ -212,7 +212,6 @@ def test_sensor_mode_does_not_arm_without_an_estimate():
         assert gateway.request_arm(0.1) == (False, 'arm refused: STATE_INVALID')
 
 
-
 def test_the_bridges_sensor_timing_is_the_simulated_cars():
     """config/bridge.yaml's latencies and rates describe the car the link graphs simulate with
     config/sim/sensors/realistic.yaml: if one is changed alone, the bridge stamps the simulated

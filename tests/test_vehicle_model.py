@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from drift_control.params import load_vehicle
-from drift_control.vehicle import (NX, THETA, U, X, VehicleModel, mirror_input, mirror_state,
-                                   rhs)
+from drift_control.vehicle import (NX, THETA, U, X, VehicleModel, front_axle_course,
+                                   mirror_input, mirror_state, rhs, slips)
 
 
 @pytest.fixture(scope='module')
@@ -60,6 +60,16 @@ def test_velocity_frame_equations_agree_with_newton_in_the_body_frame(vp, model)
         assert x_dot[X.V] == pytest.approx(V_dot, rel=1e-9, abs=1e-9)
         assert x_dot[X.BETA] == pytest.approx(beta_dot, rel=1e-9, abs=1e-9)
         assert x_dot[X.R] == pytest.approx(Mz / vp.I_z, rel=1e-12)
+
+
+def test_front_slip_is_the_steering_off_the_front_axles_course(vp):
+    """The numeric course the NMPC bounds its steering by and the slip the model computes
+    (apart from the model's smooth floor under the slip denominator)."""
+    x, _, _ = random_states(vp, 200)
+    for xi in x:
+        alpha_F = float(slips(xi, vp)[0])
+        course = front_axle_course(xi[X.V], xi[X.BETA], xi[X.R], vp.a)
+        assert alpha_F == pytest.approx(xi[X.DELTA] - course, abs=1e-6)
 
 
 def test_mirroring_left_right_mirrors_the_derivative(model, vp):

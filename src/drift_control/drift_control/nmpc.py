@@ -28,7 +28,7 @@ from drift_control.plausibility import InputChecker
 from drift_control.signals import Command, Direction, Mode, Reference, Validity, VehicleState
 from drift_control.supervisor import Supervisor, SupervisorParams
 from drift_control.tyre import simple_peak_slip
-from drift_control.vehicle import NU, U, X
+from drift_control.vehicle import NU, U, X, front_axle_course
 
 log = logging.getLogger(__name__)
 
@@ -288,7 +288,7 @@ class Nmpc:
         Past its peak slip the front tyre's force hardly grows with the steering, and that is
         where its model is least certain: plans that steer on to the lock there (to rotate the
         car or scrub speed) lean on what a plant with another front does not share. The front
-        axle's course (``delta - alpha_F`` of ``vehicle.slips``) comes from the warm start, the
+        axle's course (``vehicle.front_axle_course``) comes from the warm start, the
         real-time iteration's linearisation point; each stage's bound is cut to what the
         steering rate can reach from the last, so the QP stays feasible.
         """
@@ -298,8 +298,7 @@ class Nmpc:
         for k in range(1, self.params.N + 1):
             i = k * nz
             V, beta, r = w0[i + X.V], w0[i + X.BETA], w0[i + X.R]
-            course = math.atan2(V * math.sin(beta) + self._a * r,
-                                max(V * math.cos(beta), 0.1))   # of the front axle
+            course = front_axle_course(V, beta, r, self._a)
             reach_lo, reach_hi = max(lo - step, -lock), min(hi + step, lock)
             lo = max(reach_lo, min(course - self._front_slip, reach_hi))
             hi = min(reach_hi, max(course + self._front_slip, reach_lo))

@@ -16,6 +16,7 @@ against Newton's law in the body frame).
 """
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 from typing import NamedTuple
 
@@ -63,6 +64,12 @@ def smooth_max(a, b, w=_SMOOTH_W):
     """
     z = (a - b) / w
     return b + w * (ca.fmax(z, 0.0) + ca.log1p(ca.exp(-ca.fabs(z))))
+
+
+def front_axle_course(V: float, beta: float, r: float, a: float) -> float:
+    """Direction of the front axle's velocity from the body's x axis [rad], numeric: the front
+    slip angle of ``slips`` is ``delta`` minus this while the axle moves forward."""
+    return math.atan2(V * math.sin(beta) + a * r, max(V * math.cos(beta), 0.1))
 
 
 def slips(x, p: VehicleParams):
