@@ -324,6 +324,21 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
     assert np.allclose(seen[0][-NXO:], ctrl.model_error * stage_dt / p.Ts), 'added per stage'
 
 
+def test_model_error_decays_at_its_own_rate_off_a_steady_drift(vp, params, eq30):
+    """Learning and forgetting are separate rates: off a steady drift (a reference without a
+    drift side) the learnt error shrinks by ``disturbance_decay`` per period, whatever the gain."""
+    p = dataclasses.replace(params, disturbance_gain=0.02, disturbance_decay=0.25,
+                            solver=dataclasses.replace(params.solver, codegen=False))
+    ctrl = Nmpc(vp, p)
+    x, now = warm(ctrl, eq30)
+    ctrl._d = 0.5 * np.asarray(p.disturbance_max)   # as if learnt
+    for _ in range(3):
+        before = ctrl.model_error
+        now += TS
+        assert ctrl.step(measure(x, now), Reference(now, eq30), now).status == NmpcStatus.OK
+        assert np.allclose(ctrl.model_error, 0.75 * before, rtol=1e-12, atol=0.0)
+
+
 def test_warm_start_previous_or_shifted(vp, params, eq30, monkeypatch):
     """'previous' starts each step from the last solution as it was, 'shifted' from it moved on
     by one control period (Ts / stage_dt of a stage)."""

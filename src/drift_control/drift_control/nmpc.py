@@ -345,10 +345,11 @@ class Nmpc:
         ``disturbance_min_beta`` and the same over the horizon. In grip, along the entry ramp
         and in a flip the model error is large and changes with the state, and a constant
         ``d`` fitted to it spoils the whole horizon's prediction (it stalled the grip-to-drift
-        entry): there ``d`` decays at the same rate. It is held while the car is further than
-        ``disturbance_beta_band`` from its sideslip reference (no learning from a slide). ``d``
-        is kept for a left drift and mirrored for a right one, so the error learnt before a
-        flip serves after it. In TORQUE_ONLY it is learnt throughout: the driver steers and
+        entry): there ``d`` decays by ``disturbance_decay`` per period. It is held while the
+        car is further than ``disturbance_beta_band`` from its sideslip reference (no learning
+        from a slide). ``d`` is kept for a left drift and mirrored for a right one, so the error
+        learnt before a flip serves after it. The gain sets how much of the measurement noise
+        reaches ``d``, which the OCP adds at every stage of the horizon. In TORQUE_ONLY it is learnt throughout: the driver steers and
         closes the yaw loop, and the NMPC's torque needs the learnt error through the entry
         (semi_auto_wet stalled with the gate). The steering (the driver's in TORQUE_ONLY) is
         measured, never a model error. Only after a cycle whose command came from a fresh solve
@@ -365,7 +366,7 @@ class Nmpc:
                             and abs(beta_ref) >= p.disturbance_min_beta
                             and max(abs(e.beta - beta_ref) for e in stages) < 1e-3)
         if not steady:
-            self._d = (1.0 - gain) * self._d
+            self._d = (1.0 - p.disturbance_decay) * self._d
         elif always or abs(x_init[X.BETA] - beta_ref) < p.disturbance_beta_band:
             error = (np.asarray(x_init[:NXO]) - self._x1_pred) * _side_sign(ref)
             limit = np.asarray(p.disturbance_max)

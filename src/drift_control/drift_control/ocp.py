@@ -136,6 +136,7 @@ class NmpcParams:
     torque_only_hold_stages: int = 1       # TORQUE_ONLY: stages the driver is assumed to hold
     torque_lag: float = 0.0         # powertrain: first-order lag of the drive torque [s]; 0: none
     disturbance_gain: float = 0.0   # offset-free: share of the prediction error taken per step
+    disturbance_decay: float = 0.1  # share of d dropped per step where it is not learnt
     disturbance_max: tuple[float, ...] = (0.05, 0.01, 0.01, 1.0, 1.0, 0.0)   # |d| per period
     disturbance_beta_band: float = 0.05   # learn d only within this of the beta reference [rad]
     disturbance_min_beta: float = 0.2     # ... of a drift reference (|beta_ref| above) [rad]
@@ -163,6 +164,7 @@ class NmpcParams:
         require(0 <= low <= high, 'nmpc.brake_speed_ratio',
                 'must be [low, high] with 0 <= low <= high ([0, 0]: off)')
         require(0 <= self.disturbance_gain <= 1, 'nmpc.disturbance_gain', 'must be in [0, 1]')
+        require(0 <= self.disturbance_decay <= 1, 'nmpc.disturbance_decay', 'must be in [0, 1]')
         require(len(self.disturbance_max) == NXO and min(self.disturbance_max) >= 0,
                 'nmpc.disturbance_max', f'must be {NXO} values >= 0 (V .. delta)')
 
