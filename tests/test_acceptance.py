@@ -90,17 +90,24 @@ def test_semi_automated_driver_steers_nmpc_torque_holds_30_deg(scenario):
 def test_weak_power_steering_is_detected_and_the_stack_stops_pressing_on():
     """The paper's 30 Nm EPS: the steering cannot hold the counter-steer.
 
-    Without the supervisor the NMPC presses on: the wheels do not go where it asks (the
-    self-aligning moment turns them toward the direction of travel) and the drift is not held
-    (measured: up to 3.2 deg from the command against 0.8 deg with the steering robot, sideslip
-    RMS error 5.3 deg, 6 m off the path; seeds 0-9 4.4-7.3 deg, none spun). With it the stack
-    latches its fallback and the drive torque goes to zero.
+    Without the supervisor the NMPC presses on: the wheels do not stay where it asks (the
+    self-aligning moment turns them further toward the direction of travel, past the
+    counter-steer) and the drift is not held (measured: 0.85 deg past the command on average in
+    the drift, against 0.004 deg with the steering robot in steady_dry; sideslip RMS error
+    4.2 deg, 6.9 m off the path). With it the stack latches its fallback and the drive torque
+    goes to zero.
     """
+    def past_the_command(trace):
+        """Mean angle of the wheels beyond the commanded counter-steer in the drift [deg]."""
+        in_drift = (trace['t'] > 6.0) & (np.abs(trace['beta']) > np.radians(20.0))
+        past = (trace['delta'] - trace['delta_cmd']) * np.sign(trace['delta_cmd'])
+        return np.degrees(np.mean(past[in_drift])) if in_drift.any() else np.nan
+
     unsupervised, trace = run('eps_limited_dry', supervised=False)
     assert outcome(unsupervised) in (SPUN, LOST), 'the drift is not held'
-    in_drift = (trace['t'] > 6.0) & (np.abs(trace['beta']) > np.radians(20.0))
-    off = np.degrees(np.abs(trace['delta'] - trace['delta_cmd']))[in_drift]
-    assert off.size and off.max() > 2.0, 'the wheels do not follow the commanded steering'
+    assert past_the_command(trace) > 0.5, 'the EPS lets the wheels past the commanded steering'
+    _, robot = run('steady_dry')
+    assert abs(past_the_command(robot)) < 0.1, 'the steering robot holds them'
     m, trace = run('eps_limited_dry')
     trip = m['supervisor_trip_s']
     assert trip is not None and trip > 3.0, 'tripped in the drift, not in the grip phase'

@@ -300,6 +300,7 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
     """A plant that is the OCP's own model plus a yaw-rate offset per 20 ms period: the learnt
     error is that offset, whatever the stage length (the OCP adds it per stage, scaled)."""
     p = dataclasses.replace(params, stage_dt=stage_dt, substeps=round(stage_dt / 0.01),
+                            disturbance_gain=0.1,
                             solver=dataclasses.replace(params.solver, codegen=False))
     ctrl = Nmpc(vp, p)
     offset = np.zeros(NXO)
