@@ -349,11 +349,11 @@ class Nmpc:
         car is further than ``disturbance_beta_band`` from its sideslip reference (no learning
         from a slide). ``d`` is kept for a left drift and mirrored for a right one, so the error
         learnt before a flip serves after it. The gain sets how much of the measurement noise
-        reaches ``d``, which the OCP adds at every stage of the horizon. In TORQUE_ONLY it is learnt throughout: the driver steers and
-        closes the yaw loop, and the NMPC's torque needs the learnt error through the entry
-        (semi_auto_wet stalled with the gate). The steering (the driver's in TORQUE_ONLY) is
-        measured, never a model error. Only after a cycle whose command came from a fresh solve
-        (the prediction then matches what ran).
+        reaches ``d``, which the OCP adds at every stage of the horizon. In TORQUE_ONLY it is
+        learnt throughout: the driver steers and closes the yaw loop, and the NMPC's torque
+        needs the learnt error through the entry (semi_auto_wet stalled with the gate). The
+        steering (the driver's in TORQUE_ONLY) is measured, never a model error. Only after a
+        cycle whose command came from a fresh solve (the prediction then matches what ran).
         """
         gain, p = self.params.disturbance_gain, self.params
         self._predict()
