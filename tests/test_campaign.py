@@ -24,6 +24,15 @@ from conftest import REPO, load_script
 SHORT = ['duration=1.0', 'metrics.transient_end=0.5', 'metrics.steady=[[0.5, 1.0]]']
 
 
+def test_wilson_interval_holds_the_pass_rate():
+    """Rounding never leaves the estimate outside its interval (6/6 gave an upper bound of
+    0.9999999999999999, a negative error bar in the pass-rate figure)."""
+    for n in range(1, 201):
+        for k in range(n + 1):
+            lo, hi = wilson_interval(k, n)
+            assert 0.0 <= lo <= k / n <= hi <= 1.0, (k, n)
+
+
 def test_wilson_interval_against_the_closed_form():
     lo, hi = wilson_interval(8, 10)
     assert (lo, hi) == (pytest.approx(0.4902, abs=1e-4), pytest.approx(0.9433, abs=1e-4))

@@ -204,7 +204,9 @@ def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     denom = 1.0 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z * math.sqrt(p * (1.0 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # in exact arithmetic the interval holds p (its bound is p at 0/n and n/n); rounding can
+    # leave it a hair outside, which plots as a negative error bar
+    return max(0.0, min(p, centre - half)), min(1.0, max(p, centre + half))
 
 
 def as_expected(metrics: dict) -> bool:
