@@ -322,7 +322,8 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
     now += p.Ts
     ctrl.step(measure(np.concatenate([x, [0.0] * 3]), now, drive_torque=T_act),
               Reference(now, eq30, Direction.LEFT), now)
-    assert np.allclose(seen[0][-NXO:], ctrl.model_error * stage_dt / p.Ts), 'added per stage'
+    _, _, d, _ = ctrl.ocp.unpack_params(seen[0])
+    assert np.allclose(d, ctrl.model_error * stage_dt / p.Ts), 'added per stage'
 
 
 def test_model_error_decays_at_its_own_rate_off_a_steady_drift(vp, params, eq30):
@@ -582,6 +583,47 @@ def test_compiled_iteration_matches_interpreted(vp, params, eq30, qp):
     assert compiled[3] == interpreted[3], 'same success status'
     assert np.allclose(compiled[0], interpreted[0], rtol=0, atol=1e-9)
     assert compiled[1] == interpreted[1] and compiled[2] == pytest.approx(interpreted[2], abs=1e-9)
+
+
+def test_a_flip_weighs_the_rear_wheel_speed_until_the_drift_is_steady(vp, params, eq30):
+    """With ``cost.omega_R_flip`` the rear wheel speed weighs as that scale from the first
+    horizon with sideslip references on both sides until they are a steady drift again (the
+    catch after the crossing included); the compiled iteration solves the QP the interpreted
+    one does with that weight. Off, the Hessian stays the constant it was."""
+    assert Nmpc(vp, params)._solver.H is not None, 'off: a constant Hessian'
+    assert not Nmpc(vp, params)._flip(Reference(0.0, eq30, Direction.LEFT))
+    cost = dataclasses.replace(params.cost, omega_R_flip=5.0)
+    ctrl = Nmpc(vp, dataclasses.replace(params, cost=cost))
+    ocp, solver = ctrl.ocp, ctrl._solver
+    rows = reference_rows(Reference(0.0, eq30), ocp.N)
+    H = [np.diag(solver._hessian(ocp.pack_params(rows, 1.0, flip=f)).full())
+         for f in (False, True)]
+    wheel = [ocp.x(np.arange(ocp.nw), k)[X.OMEGA_R] for k in range(1, ocp.N + 1)]
+    assert np.allclose(H[1][wheel] / H[0][wheel], (cost.omega_R / cost.omega_R_flip) ** 2)
+    others = np.setdiff1d(np.arange(ocp.nw), wheel)
+    assert np.array_equal(H[1][others], H[0][others])
+
+    right = dataclasses.replace(eq30, beta=-eq30.beta, r=-eq30.r, delta=-eq30.delta)
+    n = ocp.N + 1
+    horizons = {'left': (eq30,) * n, 'both sides': (eq30,) * 10 + (right,) * (n - 10),
+                'catch': tuple(dataclasses.replace(right, beta=right.beta * (1 + 0.01 * k))
+                               for k in range(n)),
+                'steady right': (right,) * n}
+    seen = [ctrl._flip(Reference(0.0, h[0], Direction.LEFT, h)) for h in horizons.values()]
+    assert seen == [False, True, True, False]
+
+    if not shutil.which('gcc'):
+        return
+    x0 = np.r_[perturbed_start(eq30)[:6], eq30.T_R, eq30.T_R]
+    w0 = ocp.join(np.tile(x0, (ocp.N + 1, 1)), np.tile([0.0, eq30.T_R], (ocp.N, 1)))
+    lb, ub = ocp.bounds_for(x0)
+    args = (w0 / solver.D, ocp.pack_params(rows, 1.0, flip=True), lb / solver.D, ub / solver.D)
+    compiled = solver._iterate(*args)
+    solver.iteration = None
+    interpreted = solver._iterate(*args)
+    assert np.allclose(compiled[0], interpreted[0], rtol=0, atol=1e-9)
+    unweighted = solver._iterate(args[0], ocp.pack_params(rows, 1.0), *args[2:])
+    assert not np.allclose(unweighted[0], interpreted[0], rtol=0, atol=1e-6), 'the weight acts'
 
 
 def test_failed_compiled_qp_names_its_status(vp, params, eq30):

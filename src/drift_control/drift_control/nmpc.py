@@ -123,6 +123,7 @@ class Nmpc:
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
         self._to_predict: tuple | None = None      # ... before it is worked out: (x, u, mu, d)
         self._guess: tuple | None = None           # (solution, age, the warm start from it)
+        self._flipping = False                     # the reference flips sides (latched)
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
         self.inputs.reset()
@@ -236,7 +237,8 @@ class Nmpc:
         self._T_act = x_init[S_T_ACT]
         self._update_disturbance(x_init, ref)
         d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
-        p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts)
+        p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts,
+                            self._flip(ref))
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
@@ -263,6 +265,22 @@ class Nmpc:
         command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
+
+    FLIP_SIDE = 0.05     # a sideslip reference beyond this [rad] is on one side
+    FLIP_STEADY = 0.01   # a flip ends when the horizon's sideslip references are this close [rad]
+
+    def _flip(self, ref: Reference) -> bool:
+        """Whether the reference flips sides: from the first horizon with sideslip references
+        on both sides until one whose references are a steady drift again. The catch after the
+        crossing, when the horizon already holds one side, is part of the flip."""
+        if self.params.cost.omega_R_flip == 0.0:
+            return False
+        betas = [e.beta for e in (ref.horizon or (ref.target,))]
+        if max(betas) > self.FLIP_SIDE and min(betas) < -self.FLIP_SIDE:
+            self._flipping = True
+        elif self._flipping and max(betas) - min(betas) < self.FLIP_STEADY:
+            self._flipping = False
+        return self._flipping
 
     def _braking_bound(self, V: float, ref: Reference) -> float | None:
         """Lower torque bound that keeps a slow car from braking itself to a stop.

@@ -12,8 +12,9 @@ structure HPIPM needs. Decision vector, stage-interleaved for the structure-expl
     x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d]`` (``d``: model error added per stage, for offset-free tracking), so one compiled solver
-serves every reference, surface and mode. Every cost term is a
+mu, d, flip]`` (``d``: model error added per stage, for offset-free tracking; ``flip``: 1 while
+the reference flips sides, weighing the rear wheel speed as ``cost.omega_R_flip``), so one
+compiled solver serves every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
 from __future__ import annotations
@@ -58,14 +59,25 @@ class CostScales:
     T_R: float = 3000.0         # drive torque to the equilibrium torque [Nm] (regularisation)
     delta_dot: float = 0.5      # steering rate [rad/s]
     T_R_rate: float = 20000.0   # drive torque rate [Nm/s]
+    omega_R_flip: float = 0.0   # rear wheel speed while the reference flips sides [rad/s];
+                                # 0: omega_R throughout
     terminal_factor: float = 5.0   # terminal state cost = factor x stage state cost [-]
     torque_range: float = 0.0   # T_R_max - T_R_min the torque scales are set for [Nm]; 0: none
 
     def __post_init__(self):
         for name, value in self.__dict__.items():
-            if name != 'torque_range':
+            if name not in ('torque_range', 'omega_R_flip'):
                 require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
         require(self.torque_range >= 0, 'nmpc.cost.torque_range', 'must be >= 0 (0: off)')
+        require(self.omega_R_flip == 0 or 0 < self.omega_R_flip < self.omega_R,
+                'nmpc.cost.omega_R_flip', 'must be 0 (off) or in (0, omega_R): a heavier weight')
+
+    def flip_extra(self) -> float:
+        """Weight of the extra rear-wheel residual that makes ``omega_R`` weigh as
+        ``omega_R_flip`` in a flip (0: off): ``1/omega_R_flip^2 = 1/omega_R^2 + extra^2``."""
+        if self.omega_R_flip == 0:
+            return 0.0
+        return math.sqrt(self.omega_R_flip ** -2 - self.omega_R ** -2)
 
     def torque(self, bounds: 'Bounds') -> tuple[float, float]:
         """The scales (T_R [Nm], T_R_rate [Nm/s]) for a car with the torque ``bounds``."""
@@ -222,7 +234,7 @@ class Ocp:
         self.bounds = effective_bounds(vehicle, params)
         N, nz = params.N, NS + NU
         self.N, self.nw = N, N * nz + NS
-        self.np = (N + 1) * NREF + 1 + NXO
+        self.np = (N + 1) * NREF + 1 + NXO + 1
         model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
         self.model = model
         xs, us, mu_s = ca.SX.sym('x', NS), ca.SX.sym('u', NU), ca.SX.sym('mu')
@@ -251,8 +263,9 @@ class Ocp:
                                     ['x', 'u', 'mu'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
-        refs, _, _ = self.unpack_params(self.p)
+        refs, _, _, flip = self.unpack_params(self.p)
         c = params.cost
+        flip_extra = c.flip_extra()
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
         T_R_scale, T_R_rate_scale = c.torque(self.bounds)
         res = []
@@ -265,8 +278,13 @@ class Ocp:
             res.append((uk[U.T_R] - refs[k][REF_T_R]) / T_R_scale)
             if k > 0:   # x_0 is fixed: its cost is a constant
                 res.append((xk[:NXO] - refs[k][:NXO]) / state_scale)
+                if flip_extra:
+                    res.append(flip * flip_extra * (xk[X.OMEGA_R] - refs[k][X.OMEGA_R]))
         term = math.sqrt(c.terminal_factor)
-        res.append(term * (self.x(self.w, N)[:NXO] - refs[N][:NXO]) / state_scale)
+        x_N = self.x(self.w, N)
+        res.append(term * (x_N[:NXO] - refs[N][:NXO]) / state_scale)
+        if flip_extra:
+            res.append(term * flip * flip_extra * (x_N[X.OMEGA_R] - refs[N][X.OMEGA_R]))
         self.residual = ca.vertcat(*res)
         self.J = ca.sumsqr(self.residual)
 
@@ -277,7 +295,7 @@ class Ocp:
         ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small code).
         """
         nz = NS + NU
-        _, mu, d = self.unpack_params(p)
+        _, mu, d, _ = self.unpack_params(p)
         body = ca.reshape(w[:self.N * nz], nz, self.N)
         x_next = self.F.map(self.N)(body[:NS, :], body[NS:, :], mu)
         x_next = x_next + ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
@@ -316,12 +334,12 @@ class Ocp:
         return np.concatenate([body.ravel(), np.asarray(states)[-1]])
 
     def unpack_params(self, p):
-        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu, d)."""
+        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu, d, flip)."""
         n = (self.N + 1) * NREF
         refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
-        return refs, p[n], p[n + 1:n + 1 + NXO]
+        return refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO]
 
-    def pack_params(self, refs, mu: float, d=None) -> np.ndarray:
+    def pack_params(self, refs, mu: float, d=None, flip: bool = False) -> np.ndarray:
         """Numeric parameter vector.
 
         Parameters
@@ -332,12 +350,14 @@ class Ocp:
             Surface friction [-].
         d : array (6,), optional
             Model error added to each stage's vehicle states (V .. delta); default zero.
+        flip : bool
+            The reference flips sides: the rear wheel speed weighs as ``cost.omega_R_flip``.
         """
         refs = np.asarray(refs, dtype=float)
         if refs.shape != (self.N + 1, NREF):
             raise ValueError(f'refs must be ({self.N + 1}, {NREF}), got {refs.shape}')
         d = np.zeros(NXO) if d is None else np.asarray(d, dtype=float)
-        return np.concatenate([refs.ravel(), [mu], d])
+        return np.concatenate([refs.ravel(), [mu], d, [1.0 if flip else 0.0]])
 
     def bounds_for(self, x_init, hold_stages: int = 0,
                    T_R_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:

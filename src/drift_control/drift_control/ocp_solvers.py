@@ -64,11 +64,13 @@ class RtiSolver:
         # the QP runs in scaled variables w = D ws (torques in kNm next to angles in rad):
         # interior-point and ADMM QP solvers need the similar magnitudes
         self.D = ocp.variable_scale()
-        # cost residuals are linear in w: constant Hessian, gradient from a small SX function
+        # cost residuals are linear in w: the Hessian depends on p at most (a flip's weight,
+        # ``cost.omega_R_flip``), else it is a constant; gradient from a small SX function
         ws_sx = ca.SX.sym('ws', ocp.nw)
         r = ca.substitute(ocp.residual, ocp.w, self.D * ws_sx)
         Jr = ca.jacobian(r, ws_sx)
-        self.H = ca.DM(ca.Function('H', [ws_sx, ocp.p], [2 * ca.mtimes(Jr.T, Jr)])(0, 0))
+        self.H_fn = ca.Function('H', [ocp.p], [2 * ca.mtimes(Jr.T, Jr)])
+        self.H = None if ca.depends_on(Jr, ocp.p) else ca.DM(self.H_fn(0))
         grad_fn = ca.Function('grad', [ws_sx, ocp.p], [2 * ca.mtimes(Jr.T, r), ca.sumsqr(r)])
         # shooting gaps (scaled like the states) and their Jacobian: one mapped stage function
         ws, p = ca.MX.sym('ws', ocp.nw), ca.MX.sym('p', ocp.np)
@@ -97,7 +99,12 @@ class RtiSolver:
         if sp.qp_solver == 'hpipm':
             opts.update({'N': N, 'nx': [NS] * (N + 1), 'nu': [NU] * N + [0], 'ng': [0] * (N + 1)})
         opts['error_on_fail'] = False
-        return ca.conic('nmpc_qp', sp.qp_solver, {'h': self.H.sparsity(), 'a': a_sparsity}, opts)
+        return ca.conic('nmpc_qp', sp.qp_solver, {'h': self.H_fn.sparsity_out(0), 'a': a_sparsity},
+                        opts)
+
+    def _hessian(self, p):
+        """The QP's Hessian for the parameters ``p`` (numeric or MX)."""
+        return self.H if self.H is not None else self.H_fn(p)
 
     def _compiled_iteration(self, grad_fn) -> tuple[CompiledFunction, CompiledFunction] | None:
         """One iteration as two compiled calls in scaled variables: ``prepare``, the model's
@@ -129,7 +136,7 @@ class RtiSolver:
         X_rest = ca.MX.sym('X_rest', rest[0].sparsity())
         jac_rest = ca.MX.sym('jac_rest', rest[1].sparsity())
 
-        _, mu_p, d = ocp.unpack_params(p)
+        _, mu_p, d, _ = ocp.unpack_params(p)
         X_0, jac_0 = stage(body[:NS, 0], body[NS:, 0], mu_p)
         X_next, jacs = ca.horzcat(X_0, X_rest), ca.horzcat(jac_0, jac_rest)
         # the gaps exactly as Ocp.gaps computes them
@@ -143,7 +150,7 @@ class RtiSolver:
         self._qp_same = self._conic(A.sparsity())   # the QP as compiled, for a failure's status
         # the generated HPIPM reads its initial guesses: zeros, as the interpreted call passes
         zeros = ca.DM.zeros(ocp.nw), ca.DM.zeros(A.shape[0])
-        sol = self._qp_same(h=self.H, g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws,
+        sol = self._qp_same(h=self._hessian(p), g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws,
                             ubx=ubs - ws, x0=zeros[0], lam_x0=zeros[0], lam_a0=zeros[1])
         # outputs in the order the generated code writes them: the QP data (computed before
         # the QP) stay readable when the QP fails; every multiplier is written, so requested
@@ -194,7 +201,7 @@ class RtiSolver:
             qp = self._qp_same
             A = ca.DM(qp.sparsity_in('a'), a_nz)
             J = J[0]
-        sol = qp(h=self.H, g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws, ubx=ubs - ws)
+        sol = qp(h=self._hessian(p), g=grad, a=A, lba=-gap, uba=-gap, lbx=lbs - ws, ubx=ubs - ws)
         stats = qp.stats()
         status = str(stats.get('return_status', ''))
         if not stats.get('success', False):
