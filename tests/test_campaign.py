@@ -12,8 +12,9 @@ import time
 
 import pytest
 
-from drift_control.params import ParamError
-from drift_sim.campaign import Job, campaign_jobs, run_jobs
+from drift_control.assembly import maps_dir
+from drift_control.params import ParamError, config_dir
+from drift_sim.campaign import Job, campaign_jobs, config_digest, run_jobs
 from drift_sim.store import RunStore
 from drift_sim.sweep import (ERROR, HELD, LOST, SPUN, TRIPPED, campaign_summary, format_campaign,
                              wilson_interval)
@@ -54,9 +55,29 @@ def test_jobs_go_plant_by_plant_through_every_scenario_and_car_with_distinct_has
         ('steady_dry', 'm3_competition', 0, 1)]
     assert all(j.overrides[0] == 'duration=2' and len(j.overrides) > 30 for j in jobs)
     nominal = campaign_jobs(['steady_dry'], ['gr86'], [4])
-    assert nominal == [Job('steady_dry', 'gr86', 4)]
-    assert nominal[0].key == Job('steady_dry', 'gr86', 4, values={'x': 1.0}).key
-    assert nominal[0].key != Job('steady_dry', 'gr86', 5).key
+    digest = config_digest()
+    assert nominal == [Job('steady_dry', 'gr86', 4, config_digest=digest)]
+    assert nominal[0].key == Job('steady_dry', 'gr86', 4, values={'x': 1.0},
+                                 config_digest=digest).key
+    assert nominal[0].key != Job('steady_dry', 'gr86', 5, config_digest=digest).key
+
+
+def test_the_configuration_counts_by_its_values_not_its_text_or_place(tmp_path):
+    """A copy of the configuration with another comment keys its runs as the original does (a
+    store resumes across it); a changed value keys them anew (they are run, not taken from
+    the store)."""
+    copy = tmp_path / 'config'
+    shutil.copytree(config_dir(), copy)
+    (tmp_path / 'maps').symlink_to(maps_dir())
+    nmpc = copy / 'nmpc.yaml'
+    nmpc.write_text('# a comment of the copy\n' + nmpc.read_text())
+    key = lambda config: campaign_jobs(['steady_dry'], ['gr86'], [0], plants=1,
+                                       config=config)[0].key
+    assert config_digest(copy) == config_digest() and key(str(copy)) == key(None)
+    text = nmpc.read_text()
+    nmpc.write_text(text.replace('disturbance_gain: 0.02', 'disturbance_gain: 0.03'))
+    assert text != nmpc.read_text(), 'the value to change is in the file'
+    assert config_digest(copy) != config_digest() and key(str(copy)) != key(None)
 
 
 def test_a_replay_command_is_the_job_for_simulate_py():

