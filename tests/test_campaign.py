@@ -1,5 +1,6 @@
 """Campaigns: jobs and their hashes, the run store, the summary, scripts/campaign.py, and a
 2-worker Ray campaign that is interrupted and resumed (Ray is started once for this module)."""
+import dataclasses
 import json
 import math
 import shlex
@@ -14,7 +15,7 @@ import pytest
 
 from drift_control.assembly import maps_dir
 from drift_control.params import ParamError, config_dir
-from drift_sim.campaign import Job, campaign_jobs, config_digest, run_jobs
+from drift_sim.campaign import Job, campaign_jobs, code_version, config_digest, run_jobs
 from drift_sim.store import RunStore
 from drift_sim.sweep import (ERROR, HELD, LOST, SPUN, TRIPPED, campaign_summary, format_campaign,
                              wilson_interval)
@@ -78,6 +79,12 @@ def test_the_configuration_counts_by_its_values_not_its_text_or_place(tmp_path):
     nmpc.write_text(text.replace('disturbance_gain: 0.02', 'disturbance_gain: 0.03'))
     assert text != nmpc.read_text(), 'the value to change is in the file'
     assert config_digest(copy) != config_digest() and key(str(copy)) != key(None)
+
+
+def test_a_row_names_the_code_it_ran_on_which_does_not_key_it():
+    job = campaign_jobs(['steady_dry'], ['gr86'], [0])[0]
+    assert job.row()['code'] == code_version()
+    assert dataclasses.replace(job, code='another').key == job.key
 
 
 def test_a_replay_command_is_the_job_for_simulate_py():

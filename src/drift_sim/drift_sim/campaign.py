@@ -16,6 +16,7 @@ import hashlib
 import json
 import shlex
 import socket
+import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -44,6 +45,7 @@ class Job:
     values: dict = field(default_factory=dict, compare=False)   # drawn u per parameter
     config: str | None = None         # config directory; None: the checkout's
     config_digest: str = ''           # its values and maps (``config_digest``)
+    code: str = field(default='', compare=False)   # the checkout's commit (``code_version``)
     sensors: str = ''                 # the car's sensor units ('realistic'); '': plant's noise
     estimator: str = ''               # with sensors: 'ekf' or 'none'
     sensor_set: tuple[str, ...] = ()  # with sensors: the draw's sensor overrides
@@ -78,7 +80,7 @@ class Job:
         return {'key': self.key, 'scenario': self.scenario, 'vehicle': self.vehicle,
                 'seed': self.seed, 'draw': self.draw, 'plant_seed': self.plant_seed,
                 'overrides': list(self.overrides), 'values': dict(self.values),
-                'config': self.config, 'config_digest': self.config_digest,
+                'config': self.config, 'config_digest': self.config_digest, 'code': self.code,
                 'replay': self.replay_command(),
                 **({'sensors': self.sensors, 'estimator': self.estimator,
                     'sensor_set': list(self.sensor_set)} if self.sensors else {})}
@@ -98,6 +100,23 @@ def config_digest(config=None) -> str:
                 data = path.read_bytes()
             digest.update(path.relative_to(base).as_posix().encode() + b'\0' + data + b'\0')
     return digest.hexdigest()[:16]
+
+
+def code_version() -> str:
+    """The checkout's commit, ``+dirty`` with uncommitted changes to tracked files; '' outside
+    a git checkout. Not in a run's key (most commits change no result): it shows a store that
+    was resumed on other code."""
+    def git(*args):
+        return subprocess.run(['git', '-C', str(config_dir()), *args], capture_output=True,
+                              text=True, timeout=10)
+    try:
+        head = git('rev-parse', '--short', 'HEAD')
+        if head.returncode != 0:
+            return ''
+        dirty = git('status', '--porcelain', '--untracked-files=no').stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ''
+    return head.stdout.strip() + ('+dirty' if dirty else '')
 
 
 def scenario_vehicle(scenario: str, overrides=(), config=None) -> str:
@@ -141,7 +160,8 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
         load_sensor_params(sensors, config)
         require(estimator in ESTIMATORS, 'estimator',
                 f'{estimator!r} is not one of {list(ESTIMATORS)}')
-    sensed = {'sensors': sensors, 'estimator': estimator, 'config_digest': config_digest(config)}
+    sensed = {'sensors': sensors, 'estimator': estimator, 'config_digest': config_digest(config),
+              'code': code_version()}
     runs = {}   # (draw, seed) -> the jobs of every scenario and vehicle
     for scenario in scenarios:
         for vehicle in vehicles:
