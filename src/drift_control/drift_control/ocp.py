@@ -269,7 +269,7 @@ class Ocp:
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
         T_R_scale, T_R_rate_scale = c.torque(self.bounds)
         res = []
-        for k in range(N):   # every residual is linear in w: the GN Hessian is constant
+        for k in range(N):   # every residual is linear in w: the GN Hessian depends on p at most
             xk, uk = self.x(self.w, k), self.u(self.w, k)
             res.append(uk[U.DELTA_DOT] / c.delta_dot)
             # stage 0's change comes one control period after T_last, but is scaled by the stage
