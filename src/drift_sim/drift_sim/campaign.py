@@ -7,8 +7,9 @@
 
 A job is data: the hash of its configuration keys the store (``drift_sim.store``), so running
 the same jobs again skips those already finished; the configuration counts by its values
-(``config_digest``), so a run is redone when a value it reads changed, not when a comment did. A row is the job's configuration with the
-run's outcome, metrics (``drift_sim.sweep.run_seed``) and the command that replays it.
+(``config_digest``), so a run is redone when a value it reads changed, not when a comment did.
+A row is the job's configuration with the run's outcome, metrics (``drift_sim.sweep.run_seed``)
+and the command that replays it.
 """
 from __future__ import annotations
 
