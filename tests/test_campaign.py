@@ -79,6 +79,9 @@ def test_the_configuration_counts_by_its_values_not_its_text_or_place(tmp_path):
     nmpc.write_text(text.replace('disturbance_gain: 0.02', 'disturbance_gain: 0.03'))
     assert text != nmpc.read_text(), 'the value to change is in the file'
     assert config_digest(copy) != config_digest() and key(str(copy)) != key(None)
+    changed = config_digest(copy)
+    (copy / 'sim' / 'notes.yaml').write_text('a: [1,\n')   # read by no run, not valid YAML
+    assert config_digest(copy) != changed, 'counted by its bytes, not refused'
 
 
 def test_a_row_names_the_code_it_ran_on_which_does_not_key_it():

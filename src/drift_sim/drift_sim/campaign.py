@@ -90,15 +90,18 @@ class Job:
 def config_digest(config=None) -> str:
     """Digest of what runs read from a configuration directory: every file under it (a YAML
     file by its values: comments and layout do not count) and the equilibrium maps it uses.
-    Copies with the same values share it; a changed value changes it."""
+    Copies with the same values share it; a changed value changes it. A file that does not
+    parse counts by its bytes: refusing it is for the run that reads it, if any."""
     root = Path(config or config_dir())
     digest = hashlib.sha256()
     for base in (root, maps_dir(root)):
         for path in sorted(p for p in base.rglob('*') if p.is_file()):
+            data = path.read_bytes()
             if path.suffix in ('.yaml', '.yml'):
-                data = json.dumps(load_yaml(path), sort_keys=True, default=str).encode()
-            else:
-                data = path.read_bytes()
+                try:
+                    data = json.dumps(load_yaml(path), sort_keys=True, default=str).encode()
+                except ParamError:
+                    pass
             digest.update(path.relative_to(base).as_posix().encode() + b'\0' + data + b'\0')
     return digest.hexdigest()[:16]
 
