@@ -119,7 +119,12 @@ class Setup:
         # lookup_many and the grid are optional: a stand-in map may offer lookup alone
         limit = sideslip_limit(self.eqmap, effective_bounds(self.vehicle, self.nmpc)) \
             if hasattr(self.eqmap, 'filled') else None
-        selector = ReferenceSelector(self.eqmap.lookup, self.path, self.reference,
+        params = self.reference
+        if self.mode != Mode.FULL:
+            # with the driver steering the entry's faster rotation would be asked of the
+            # torque alone (docs/tuning_log.md: the semi-automated entries spun more often)
+            params = replace(params, course_yaw_entry=False)
+        selector = ReferenceSelector(self.eqmap.lookup, self.path, params,
                                      getattr(self.eqmap, 'lookup_many', None), limit)
         selector.reset(s_hint=self.scenario.initial.s if self.scenario else None)
         return selector

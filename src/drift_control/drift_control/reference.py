@@ -58,8 +58,8 @@ class ReferenceParams:
     side_from_path_beta: float = 0.05   # ... on a straight only while the sideslip reference
                                   # is above this [rad]; in grip the corrected curvature's
     course_yaw: bool = True       # yaw-rate reference r_eq - d(beta_ref)/dt (see _course_yaw)
-    course_yaw_entry: bool = False  # ... in the entry ramp too (a controller model whose
-                                  # entries brake: docs/tuning_log.md)
+    course_yaw_entry: bool = False  # ... in the entry ramp too, where the NMPC steers
+                                  # (``Setup.build_selector``: not in TORQUE_ONLY)
     speed_rise_max: float = 0.0   # leaving a drift (and in grip after the entry) the speed
                                   # reference rises at most this fast, in time and along the
                                   # horizon [m/s^2] (0: off)
