@@ -165,6 +165,28 @@ def test_scenario_path_is_inline_or_a_paths_file(tmp_path):
         resolve_path('nosuch', tmp_path, 'nosuch')
 
 
+def test_scenario_path_file_with_keys_laid_over_it(tmp_path):
+    """``{file: name, ...}``: the file's path with the given keys changed, mappings key by key
+    (a longer entry ramp keeps the file's drift sideslip and grip phase)."""
+    from drift_control.scenario import resolve_path
+    (tmp_path / 'paths').mkdir()
+    (tmp_path / 'paths' / 'ring.yaml').write_text(
+        'path:\n  type: circle\n  radius: 20.0\n'
+        '  sideslip: {beta_deg: 30.0, grip_until: 20.0, ramp_length: 45.0}\n')
+    base = resolve_path('ring', tmp_path, 'base')
+    long = resolve_path({'file': 'ring', 'sideslip': {'ramp_length': 80.0}}, tmp_path, 'long')
+    assert long.sideslip.ramp_length == 80.0 and base.sideslip.ramp_length == 45.0
+    assert long.sideslip.grip_until == base.sideslip.grip_until == 20.0
+    assert long.beta_at(200.0) == pytest.approx(base.beta_at(200.0)) == pytest.approx(
+        math.radians(30.0))
+    assert long.beta_at(70.0) < base.beta_at(70.0), 'still ramping at 70 m'
+    assert np.array_equal(long.K, base.K) and long.name == 'ring'
+    with pytest.raises(ParamError, match=r'bad.path \(ring.yaml\).sideslip.ramp_length: must not be negative'):
+        resolve_path({'file': 'ring', 'sideslip': {'ramp_length': -1.0}}, tmp_path, 'bad')
+    with pytest.raises(ParamError, match='not found'):
+        resolve_path({'file': 'nosuch'}, tmp_path, 'nosuch')
+
+
 def test_planned_sides_flip_where_the_curves_reverse_as_the_curvature_blend_does():
     """On the alternating clothoid the planned flip (20.25 m, centred at the inflection) is the
     selector's curvature blend (|K| < 0.045 over the linear clothoid) to within half a percent."""

@@ -419,7 +419,7 @@ def _check_keys(raw, allowed, where):
         raise ParamError(f'{where}: unknown key(s) {unknown}')
 
 
-def _number(raw, key, where, default=None, positive=False):
+def _number(raw, key, where, default=None, positive=False, nonnegative=False):
     value = raw.get(key, default)
     if value is None:
         raise ParamError(f'{where}.{key}: missing')
@@ -427,6 +427,8 @@ def _number(raw, key, where, default=None, positive=False):
         raise ParamError(f'{where}.{key}: expected a finite number, got {value!r}')
     if positive and value <= 0:
         raise ParamError(f'{where}.{key}: must be positive, got {value!r}')
+    if nonnegative and value < 0:
+        raise ParamError(f'{where}.{key}: must not be negative, got {value!r}')
     return float(value)
 
 
@@ -445,8 +447,8 @@ def _sideslip(raw, where) -> SideslipProfile:
     return SideslipProfile(
         beta=math.radians(_number(raw, 'beta_deg', where, 0.0)),
         entry_beta=math.radians(_number(raw, 'entry_beta_deg', where, 0.0)),
-        grip_until=_number(raw, 'grip_until', where, 0.0),
-        ramp_length=_number(raw, 'ramp_length', where, 0.0),
+        grip_until=_number(raw, 'grip_until', where, 0.0, nonnegative=True),
+        ramp_length=_number(raw, 'ramp_length', where, 0.0, nonnegative=True),
         knots=knots)
 
 
@@ -530,15 +532,30 @@ def _build_path(raw: dict, where: str) -> Path:
                     _number(raw, 'smoothing', where, 0.0), **kw)
 
 
-def load_path_file(file: str | os.PathLike) -> Path:
-    """A path file: a ``path:`` mapping (or the mapping itself); named after the file."""
+def load_path_file(file: str | os.PathLike, overlay: dict | None = None,
+                   where: str | None = None) -> Path:
+    """A path file: a ``path:`` mapping (or the mapping itself); named after the file.
+
+    ``overlay``: keys laid over the file's mapping, mappings key by key (``{'sideslip':
+    {'ramp_length': 80.0}}`` changes the ramp and keeps the rest of the sideslip profile).
+    ``where``: how errors name the mapping (default: the file's name).
+    """
     raw = load_yaml(file)
     raw = raw.get('path', raw)
     if not isinstance(raw, dict):
         raise ParamError(f'{file}: path: expected a mapping')
     raw = dict(raw)
     raw.setdefault('name', os.path.splitext(os.path.basename(file))[0])
-    return load_path(raw, os.path.basename(file))
+    return load_path(_overlaid(raw, overlay or {}), where or os.path.basename(file))
+
+
+def _overlaid(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            value = _overlaid(out[key], value)
+        out[key] = value
+    return out
 
 
 __all__ = ['Path', 'SideslipProfile', 'alternating', 'circle', 'figure8', 'from_segments',

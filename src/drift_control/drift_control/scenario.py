@@ -1,8 +1,8 @@
 """Scenarios: vehicle, path, surface, initial state, duration, control mode, faults, overrides.
 
 A scenario is ``config/scenarios/<name>.yaml``, loaded into a frozen ``Scenario``. Its ``path:``
-is the format of ``drift_control.path.load_path`` (a mapping) or the name of a file under
-``config/paths/``. ``plant:`` and ``driver:`` hold the simulator's overrides (``drift_sim``
+is the format of ``drift_control.path.load_path`` (a mapping), the name of a file under
+``config/paths/``, or ``{file: <name>, ...}`` (that file with keys laid over it). ``plant:`` and ``driver:`` hold the simulator's overrides (``drift_sim``
 applies them); ``--set key=value`` changes any key (``surface.mu=0.55``, ``vehicle=gr86``,
 ``plant.lsd.locking=1.0``). The controller side reads the same file through
 ``drift_control.assembly``, the simulator through ``drift_sim.scenario``: one parser for both.
@@ -137,13 +137,19 @@ def control_scenario_names(config: str | os.PathLike | None = None) -> list[str]
 
 
 def resolve_path(section, config: FsPath, where: str) -> Path:
-    """A ``path:`` section: a ``load_path`` mapping or the name of a ``config/paths`` file."""
-    if isinstance(section, dict):
+    """A ``path:`` section: a ``load_path`` mapping, the name of a ``config/paths`` file, or
+    ``{file: <name>, ...}``: that file with the other keys laid over it (``sideslip:`` key by
+    key; e.g. the wet pad's longer entry ramp on a dry scenario's path)."""
+    overlay = None
+    if isinstance(section, dict) and 'file' in section:
+        overlay = {k: v for k, v in section.items() if k != 'file'}
+        section = section['file']
+    elif isinstance(section, dict):
         return load_path(section, f'{where}.path')
     if not isinstance(section, str) or not section:
         raise ParamError(f'{where}.path: expected a mapping or a config/paths name')
-    return load_path_file(config / 'paths' / (section if section.endswith('.yaml')
-                                              else f'{section}.yaml'))
+    file = config / 'paths' / (section if section.endswith('.yaml') else f'{section}.yaml')
+    return load_path_file(file, overlay, f'{where}.path ({file.name})' if overlay else None)
 
 
 def surface_mu(scenario: Scenario, config: str | os.PathLike | None = None) -> float:
