@@ -297,14 +297,13 @@ class ReferenceSelector:
         if limited and self._w is not None:
             w = _limit(self._w, w, p.side_rate_max * dt)
         self._w = w
-        target, direction, clamped = self.equilibrium(beta_abs, K_cmd, w)
+        horizon, weights, beta_end, (target, direction, clamped) = self._horizon(
+            fp.s, state.V, correction, (K_cmd, beta_abs, w))
         clamped = clamped or abs(K_raw) > k_max
         if clamped:
             self._warn.warning('clamp', 'reference: lookup clamped (off the map grid or in a '
                                'hole) at s=%.1f m (beta %.1f deg, K %.4f 1/m)', fp.s,
                                math.degrees(beta_abs), K_raw)
-        horizon, weights, beta_end = self._horizon(fp.s, state.V, correction,
-                                                   (K_cmd, beta_abs, w), target)
         after_entry = fp.s >= self.path.sideslip.entry_end
         # leaving a drift: the sideslip falls along the horizon, or grip driving after it
         unwinding = beta_end < beta_abs - 1e-3 or beta_abs < p.side_from_path_beta
@@ -328,14 +327,15 @@ class ReferenceSelector:
         self._last = ref
         return ref
 
-    def _horizon(self, s, V, correction, start, target):
-        """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 is ``target``), same limits,
-        their left weights and the last stage's sideslip magnitude [rad]."""
+    def _horizon(self, s, V, correction, start):
+        """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 at ``start``), same limits,
+        their left weights, the last stage's sideslip magnitude [rad] and stage 0's
+        ``equilibrium()``: (equilibrium, direction, clamped). The map is looked up once."""
         p, h = self.p, self.p.horizon_dt
-        if p.horizon_steps == 0:
-            return (), (start[2],), start[1]
         (K, beta, w) = start
-        weights, queries = [w], []
+        if p.horizon_steps == 0:
+            return (), (w,), beta, self.equilibrium(beta, K, w)
+        weights, queries = [w], [(beta, K, w)]
         k_max = 1.0 / p.radius_min
         # the path along the whole horizon in one call each; the limits run stage by stage
         s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
@@ -364,8 +364,8 @@ class ReferenceSelector:
             w = w + max(-dw, min(dw, side - w))
             queries.append((beta, K, w))
             weights.append(w)
-        return ((target, *(eq for eq, _, _ in self._equilibria(queries))), tuple(weights),
-                beta)
+        stages = self._equilibria(queries)
+        return tuple(eq for eq, _, _ in stages), tuple(weights), beta, stages[0]
 
     def _equilibria(self, queries):
         """``[equilibrium(beta_abs, K_cmd, w) for ... in queries]``, the map looked up once."""
