@@ -101,7 +101,7 @@ def test_alternating_robust_to_friction_over_seeds(perturbation):
     """
     runs = sweep('alternating_dry', perturbation)
     kept = [m for m in runs if outcome(m) == HELD]
-    assert len(kept) >= 9, [outcome(m) for m in runs]
+    assert len(kept) >= 9, [m.get('error', outcome(m)) for m in runs]
     assert all(m['transition_time_s'] < 2.0 for m in kept)
     e_y = [m['max_abs_e_y_m'] if outcome(m) == HELD else np.inf for m in runs]
     assert np.median(e_y) <= 1.5, sorted(e_y)

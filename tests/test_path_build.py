@@ -181,7 +181,8 @@ def test_scenario_path_file_with_keys_laid_over_it(tmp_path):
         math.radians(30.0))
     assert long.beta_at(70.0) < base.beta_at(70.0), 'still ramping at 70 m'
     assert np.array_equal(long.K, base.K) and long.name == 'ring'
-    with pytest.raises(ParamError, match=r'bad.path \(ring.yaml\).sideslip.ramp_length: must not be negative'):
+    with pytest.raises(ParamError,
+                       match=r'bad.path \(ring.yaml\).sideslip.ramp_length: must not be negative'):
         resolve_path({'file': 'ring', 'sideslip': {'ramp_length': -1.0}}, tmp_path, 'bad')
     with pytest.raises(ParamError, match='not found'):
         resolve_path({'file': 'nosuch'}, tmp_path, 'nosuch')

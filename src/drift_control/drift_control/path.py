@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drift_control.params import ParamError, load_yaml
+from drift_control.params import ParamError, load_yaml, merge
 from drift_control.signals import Direction
 
 _SEGMENT_CLOSURE_TOL = 1e-3   # [m] a closed path built from segments must end where it started
@@ -546,16 +546,7 @@ def load_path_file(file: str | os.PathLike, overlay: dict | None = None,
         raise ParamError(f'{file}: path: expected a mapping')
     raw = dict(raw)
     raw.setdefault('name', os.path.splitext(os.path.basename(file))[0])
-    return load_path(_overlaid(raw, overlay or {}), where or os.path.basename(file))
-
-
-def _overlaid(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            value = _overlaid(out[key], value)
-        out[key] = value
-    return out
+    return load_path(merge(raw, overlay), where or os.path.basename(file))
 
 
 __all__ = ['Path', 'SideslipProfile', 'alternating', 'circle', 'figure8', 'from_segments',

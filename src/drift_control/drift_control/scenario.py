@@ -2,9 +2,10 @@
 
 A scenario is ``config/scenarios/<name>.yaml``, loaded into a frozen ``Scenario``. Its ``path:``
 is the format of ``drift_control.path.load_path`` (a mapping), the name of a file under
-``config/paths/``, or ``{file: <name>, ...}`` (that file with keys laid over it). ``plant:`` and ``driver:`` hold the simulator's overrides (``drift_sim``
-applies them); ``--set key=value`` changes any key (``surface.mu=0.55``, ``vehicle=gr86``,
-``plant.lsd.locking=1.0``). The controller side reads the same file through
+``config/paths/``, or ``{file: <name>, ...}`` (that file with keys laid over it). ``plant:``
+and ``driver:`` hold the simulator's overrides (``drift_sim`` applies them); ``--set
+key=value`` changes any key (``surface.mu=0.55``, ``vehicle=gr86``, ``plant.lsd.locking=1.0``).
+The controller side reads the same file through
 ``drift_control.assembly``, the simulator through ``drift_sim.scenario``: one parser for both.
 """
 from __future__ import annotations
