@@ -187,7 +187,7 @@ def test_front_slip_band_keeps_the_plans_front_tyre_near_its_peak(vp, params, eq
     course = front_axle_course(V, beta, r, vp.a)
     delta_0 = course + band + 5 * step   # steered 5 stages' rate beyond the band, into the turn
     lbw, ubw = ctrl.ocp.bounds_for(np.array(x))
-    ctrl._front_slip_band(lbw, ubw, w0, delta_0)
+    ctrl._front_slip_band(lbw, ubw, ctrl._front_courses(w0), delta_0)
     nz, N = NS + NU, params.N
     lo, hi = lbw[X.DELTA + nz::nz], ubw[X.DELTA + nz::nz]
     assert len(lo) == N

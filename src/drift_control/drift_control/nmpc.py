@@ -122,7 +122,8 @@ class Nmpc:
         self._d = np.zeros(NXO)              # model error per control period (offset-free)
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
         self._to_predict: tuple | None = None      # ... before it is worked out: (x, u, mu, d)
-        self._guess: tuple | None = None           # (solution, age, the warm start from it)
+        self._guess: tuple | None = None           # (solution, age, the warm start from it,
+                                                   # its front axle courses)
         self._flipping = False                     # the reference flips sides (latched)
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
@@ -245,7 +246,7 @@ class Nmpc:
         else:
             w0, iterations = self._warm_guess(), self.params.solver.max_iter
             if self._front_slip > 0.0:
-                self._front_slip_band(lbw, ubw, w0, x_init[X.DELTA])
+                self._front_slip_band(lbw, ubw, self._guess[3], x_init[X.DELTA])
         w0[:NS] = x_init
         t0 = time.perf_counter()
         try:
@@ -300,27 +301,35 @@ class Nmpc:
         share = (V / ref.target.V - low) / max(high - low, 1e-9)
         return min(1.0, max(0.0, share)) * self.bounds.T_R_min
 
-    def _front_slip_band(self, lbw, ubw, w0, delta_0: float) -> None:
+    def _front_slip_band(self, lbw, ubw, courses, delta_0: float) -> None:
         """Steering bounds of stages 1 .. N that keep the front slip angle within the band.
 
         Past its peak slip the front tyre's force hardly grows with the steering, and that is
         where its model is least certain: plans that steer on to the lock there (to rotate the
         car or scrub speed) lean on what a plant with another front does not share. The front
-        axle's course (``vehicle.front_axle_course``) comes from the warm start, the
-        real-time iteration's linearisation point; each stage's bound is cut to what the
-        steering rate can reach from the last, so the QP stays feasible.
+        axle's ``courses`` come from the warm start, the real-time iteration's linearisation
+        point (``_front_courses``, worked out with it in ``prepare``); each stage's bound is cut
+        to what the steering rate can reach from the last, so the QP stays feasible.
         """
-        nz, lock = NS + NU, self.bounds.delta_max
+        nz, lock, band = NS + NU, self.bounds.delta_max, self._front_slip
         step = self.bounds.delta_dot_max * self.params.dt * (1.0 - 1e-6)
         lo = hi = delta_0
-        for k in range(1, self.params.N + 1):
-            i = k * nz
-            V, beta, r = w0[i + X.V], w0[i + X.BETA], w0[i + X.R]
-            course = front_axle_course(V, beta, r, self._a)
+        i = X.DELTA
+        for course in courses:
+            i += nz
             reach_lo, reach_hi = max(lo - step, -lock), min(hi + step, lock)
-            lo = max(reach_lo, min(course - self._front_slip, reach_hi))
-            hi = min(reach_hi, max(course + self._front_slip, reach_lo))
-            lbw[i + X.DELTA], ubw[i + X.DELTA] = lo, hi
+            lo = max(reach_lo, min(course - band, reach_hi))
+            hi = min(reach_hi, max(course + band, reach_lo))
+            lbw[i], ubw[i] = lo, hi
+
+    def _front_courses(self, w0) -> tuple[float, ...]:
+        """The front axle's course (``vehicle.front_axle_course``) at stages 1 .. N of ``w0``;
+        none without the front slip band."""
+        if self._front_slip <= 0.0:
+            return ()
+        nz, a = NS + NU, self._a
+        return tuple(front_axle_course(w0[i + X.V], w0[i + X.BETA], w0[i + X.R], a)
+                     for i in range(nz, (self.params.N + 1) * nz, nz))
 
     # --- warm start and failures -----------------------------------------------------------
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
@@ -338,7 +347,8 @@ class Nmpc:
         if self._guess is None or self._guess[0] is not w or self._guess[1] != age:
             shift = self._periods_in_stages(age + 1) \
                 if self.params.solver.warm_start == 'shifted' else 0.0
-            self._guess = w, age, self._shifted(w, shift)
+            guess = self._shifted(w, shift)
+            self._guess = w, age, guess, self._front_courses(guess)
         return self._guess[2].copy()
 
     def _predict(self) -> None:
