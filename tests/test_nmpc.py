@@ -714,3 +714,22 @@ def test_a_failing_preparation_costs_time_not_the_cycle(vp, params, eq30, monkey
     ctrl.prepare()   # logged, not raised
     res = ctrl.step(measure(x, TS), Reference(TS, eq30, Direction.LEFT), TS)
     assert res.status == NmpcStatus.OK
+
+
+def test_a_reference_selected_a_period_ago_is_solved_from_now_on(nmpc, eq30, monkeypatch):
+    """The selector may run after the command (the NMPC node's in-process stages): the NMPC
+    then tracks the older reference's stages from now on (Reference.at), not from its stamp."""
+    seen = []
+    solve = Nmpc._solve
+    monkeypatch.setattr(Nmpc, '_solve', lambda self, state, ref, now: (
+        seen.append(ref), solve(self, state, ref, now))[1])
+    stages = tuple(dataclasses.replace(eq30, V=eq30.V + 0.01 * k) for k in range(nmpc.params.N))
+    ref = Reference(1.0, stages[0], Direction.LEFT, stages)
+    nmpc.reset()
+    x = perturbed_start(eq30)
+    assert nmpc.step(measure(x, 1.0), ref, 1.0).status == NmpcStatus.OK
+    assert seen[-1] is ref   # as old as the state: as it is
+    assert nmpc.step(measure(x, 1.0 + TS), ref, 1.0 + TS).status == NmpcStatus.OK
+    shift = TS / nmpc.params.dt
+    assert seen[-1].target.V == pytest.approx(eq30.V + 0.01 * shift)
+    assert seen[-1].horizon[-1] == stages[-1]

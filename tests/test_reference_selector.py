@@ -500,3 +500,25 @@ def test_a_steady_drift_is_not_touched_by_the_speed_rise_limit():
     for k in range(50):
         st = state_on(path, 30.0 + 0.2 * k, e_y=0.3 * math.sin(k), t=0.02 * k)
         assert limited.select(st) == plain.select(st)
+
+
+def test_a_reference_seen_later_moves_its_horizon_on():
+    """Reference.at: a reference selected for an older state, seen ``age`` later, starts its
+    stages that much further on (linear between stages, the last held); at its own time it is
+    itself."""
+    from drift_control.signals import Reference
+    stages = tuple(Equilibrium(V=10.0 + k, beta=-0.1 * k, r=0.5, omega_F=30.0, omega_R=40.0 + k,
+                               delta=0.01 * k, T_R=1000.0 + 100.0 * k) for k in range(4))
+    ref = Reference(stamp=2.0, target=stages[0], direction=Direction.LEFT, horizon=stages, s=7.0)
+    assert ref.at(2.0, 0.03) is ref and ref.at(1.99, 0.03) is ref
+    assert replace(ref, horizon=()).at(2.5, 0.03).target == stages[0]
+    whole = ref.at(2.03, 0.03)   # one stage later: stages 1, 2, 3, 3
+    assert [e.V for e in whole.horizon] == pytest.approx([11.0, 12.0, 13.0, 13.0])
+    assert whole.target == whole.horizon[0] and whole.stamp == 2.0 and whole.s == 7.0
+    part = ref.at(2.02, 0.03)    # two thirds of a stage: every field between its neighbours
+    first = part.horizon[0]
+    for name in ('V', 'beta', 'omega_R', 'delta', 'T_R'):
+        a, b = getattr(stages[0], name), getattr(stages[1], name)
+        assert getattr(first, name) == pytest.approx(a + 2.0 / 3.0 * (b - a)), name
+    assert part.horizon[-1] == stages[-1]
+    assert ref.at(2.5, 0.03).horizon == (stages[-1],) * 4   # past its end: the last held

@@ -154,8 +154,8 @@ class Nmpc:
                                   shift=False)
         elif ref_problem is not None:
             result = self._failed(state, ref, now, ref_problem, solve_time=0.0, iterations=0)
-        else:
-            result = self._solve(state, ref, now)
+        else:   # a reference selected for an older state: its stages from now on
+            result = self._solve(state, ref.at(now, self.params.dt), now)
         self._last = result.command
         self._T_act = self._propagate_torque(result.command.drive_torque, state)
         return replace(result, stage_dt=self.params.dt)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from enum import IntEnum, IntFlag
 
 
@@ -173,6 +173,27 @@ class Reference:
     e_y: float = 0.0             # lateral error, positive left of the path [m]
     heading_error: float = 0.0   # vehicle yaw minus path tangent angle [rad]
     clamped: bool = False        # the map lookup left the grid and was clamped
+
+    def at(self, now: float, stage_dt: float) -> 'Reference':
+        """This reference as seen ``now - stamp`` seconds after the state it was selected for:
+        the horizon moved on by that many stages of ``stage_dt`` (linear between stages, the
+        last one held), its first stage the target. Itself when not older or without a horizon.
+        """
+        shift = (now - self.stamp) / stage_dt
+        if not shift > 0.0 or not self.horizon:
+            return self
+        stages, last = self.horizon, len(self.horizon) - 1
+        moved = []
+        for k in range(len(stages)):
+            x = min(k + shift, float(last))
+            i = min(int(x), last - 1) if last > 0 else 0
+            f = x - i
+            a, b = stages[i], stages[min(i + 1, last)]
+            moved.append(a if f == 0.0 else Equilibrium(
+                a.V + f * (b.V - a.V), a.beta + f * (b.beta - a.beta), a.r + f * (b.r - a.r),
+                a.omega_F + f * (b.omega_F - a.omega_F), a.omega_R + f * (b.omega_R - a.omega_R),
+                a.delta + f * (b.delta - a.delta), a.T_R + f * (b.T_R - a.T_R)))
+        return replace(self, target=moved[0], horizon=tuple(moved))
 
     def is_finite(self) -> bool:
         # asked by the selector, the NMPC and the supervisor each cycle: worked out once (frozen)

@@ -237,6 +237,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
         sim = SensedSim(sim, setup, cfg, sensors, estimator, sensor_set, sensor_faults,
                         estimator_set)
     every = max(1, int(round(ctrl.period / sim.dt)))
+    # with the estimator, as the NMPC node's in-process stages: the selector after the command,
+    # its reference for the next cycle (drift_control.nodes.nmpc_node)
+    ahead = sensors is not None
     n_steps = int(round(sc.duration / sim.dt))
 
     state = sim.reset()
@@ -254,11 +257,14 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     wall0 = time.perf_counter()
     for k in range(n_steps):
         if k % every == 0:
-            ref = selector.select(state)
+            if ref is None or not ahead:
+                ref = selector.select(state)
             new, solve = ctrl.step(state, ref, sim.t)
             if new is not None:
                 command = new
                 solve_times.append(solve)
+            if ahead:
+                ref = selector.select(state) or ref
             ctrl.prepare()
         state = sim.step(command)
         tr = sim.sample()

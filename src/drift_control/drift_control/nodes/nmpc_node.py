@@ -1,9 +1,10 @@
 """NMPC node: vehicle/state + drift/reference -> Nmpc.step -> drift/command, status, diagnostics.
 
 ``state_source: sensors``: the estimator and the reference selector run in this process as
-library stages before the NMPC, on vehicle/sensors: one DDS hop from the sensor samples to the
-command instead of three (docs/estimator.md has the measurements); the estimated state and the
-reference are published after the command, for the recorder and the view.
+library stages, on vehicle/sensors: one DDS hop from the sensor samples to the command instead
+of three (docs/estimator.md has the measurements). The estimator runs before the NMPC, the
+selector after the command (the next cycle's reference, moved on by its age in the NMPC); the
+estimated state and the reference are published after the command, for the recorder and the view.
 """
 import sys
 import time
@@ -141,12 +142,17 @@ class NmpcNode(Node):
             self._state_pub.publish(convert.state_to_msg(state, msg.header.stamp))
             return
         self._gate.fired(t)
-        self._state, self._ref = state, self._selector.select(state)
+        self._state = state
+        if self._ref is None:   # the first cycle; then the selector runs after the command
+            self._ref = self._selector.select(state)
         result = self._nmpc.step(state, self._ref, now)
         stamp = convert.time_to_msg(now + self._epoch) if now > t else msg.header.stamp
         command = convert.command_to_msg(result.command, stamp)
         if not self._sim_time:   # real time: the command out before anything else is built
             self._cmd_pub.publish(command)
+        # the next cycle's reference from this state, off the state -> command path (the NMPC
+        # moves it on by its age: Reference.at)
+        self._ref = self._selector.select(state) or self._ref
         ref = convert.reference_to_msg(self._ref, msg.header.stamp) if self._ref else None
         if ref is not None:
             self._ref_pub.publish(ref)
