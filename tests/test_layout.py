@@ -87,3 +87,17 @@ def test_priorities_do_not_change_outside_a_real_time_launch():
     finally:
         os.environ.clear()
         os.environ.update(env)
+
+
+def test_a_real_time_launch_holds_the_cpu_wake_up_latency_while_it_runs(tmp_path):
+    """The PM QoS request is the 32-bit number written to the device; it lasts while the file
+    is open. Where the device cannot be opened (not root, not Linux) nothing is held."""
+    import struct
+    from drift_control.nodes.priority import hold_cpu_wakeup
+    device = tmp_path / 'cpu_dma_latency'
+    device.write_bytes(b'')
+    held = hold_cpu_wakeup(0, str(device))
+    assert held is not None and not held.closed
+    assert struct.unpack('i', device.read_bytes()) == (0,)
+    held.close()
+    assert hold_cpu_wakeup(0, str(tmp_path / 'missing' / 'device')) is None

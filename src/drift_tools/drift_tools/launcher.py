@@ -19,7 +19,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from drift_control.nodes.priority import leave_launch_real_time
+from drift_control.nodes.priority import hold_cpu_wakeup, leave_launch_real_time
 from drift_control.nodes.stops import DUMP_SIGNAL   # a node prints its threads' stacks on it
 
 logger = logging.getLogger(__name__)
@@ -98,6 +98,11 @@ class Launcher:
         # under chrt: the launcher and its nodes start at normal priority; each node learns the
         # launch's real-time priority from its environment (drift_control.nodes.priority)
         self._priority_env = leave_launch_real_time()
+        # a real-time launch also keeps the CPUs from deep idle while it runs (closed at exit)
+        self._wakeup = hold_cpu_wakeup(0) if self._priority_env else None
+        if self._priority_env:
+            self._say('CPU wake-up latency held at 0 us while the stack runs' if self._wakeup
+                      else 'CPU wake-up latency not held (/dev/cpu_dma_latency: not allowed)')
 
     # --- output ---------------------------------------------------------------------------
     def _prefix(self, name: str, index: int, width: int) -> str:

@@ -13,9 +13,11 @@ recorder and the live view stay at normal priority. No ROS import here: the laun
 from __future__ import annotations
 
 import os
+import struct
 
 LAUNCH_RT_ENV = 'DRIFT_LAUNCH_RT_PRIORITY'   # the launch's real-time priority, for its nodes
 LINK_ABOVE = 10         # the link cycles run this much above the launch's priority
+CPU_LATENCY = '/dev/cpu_dma_latency'   # the kernel's PM QoS request for every CPU's wake-up
 _REAL_TIME = (getattr(os, 'SCHED_FIFO', -1), getattr(os, 'SCHED_RR', -1))
 
 
@@ -44,6 +46,23 @@ def leave_launch_real_time() -> dict[str, str]:
     if prio is None or not _set_all(None, 0):
         return {}
     return {LAUNCH_RT_ENV: str(prio)}
+
+
+def hold_cpu_wakeup(us: int = 0, device: str = CPU_LATENCY):
+    """Ask the kernel to wake every CPU within ``us`` microseconds (no deep idle states) while
+    the returned file stays open, as cyclictest does: an idle (virtual) CPU halts and is woken
+    late, and the controller's frame waits for it (docs/estimator.md). None where not allowed
+    (it needs root) or not there."""
+    try:
+        held = open(device, 'wb', buffering=0)
+    except OSError:
+        return None
+    try:
+        held.write(struct.pack('i', us))
+    except OSError:
+        held.close()
+        return None
+    return held
 
 
 def raise_real_time(by: int = LINK_ABOVE) -> bool:
