@@ -522,3 +522,20 @@ def test_a_reference_seen_later_moves_its_horizon_on():
         assert getattr(first, name) == pytest.approx(a + 2.0 / 3.0 * (b - a)), name
     assert part.horizon[-1] == stages[-1]
     assert ref.at(2.5, 0.03).horizon == (stages[-1],) * 4   # past its end: the last held
+
+
+def test_a_blended_lookup_stays_within_the_flip_radius():
+    """A map that reaches wide curves: a steady drift there is looked up at its radius, but
+    left and right blended (a flip, where the path straightens) at most at ``flip_radius_max``,
+    so the flip asks for no faster drift than before the map reached that far."""
+    sel = ReferenceSelector(steady_circle_lookup, drift_circle(), params(flip_radius_max=20.0))
+    wide, _, _ = sel.equilibrium(0.5, 1.0 / 45.0, 1.0)
+    assert wide.V == pytest.approx(math.sqrt(A_LAT * 45.0))
+    mid, direction, _ = sel.equilibrium(0.5, 0.0, 0.5)
+    assert direction == Direction.NONE
+    assert mid.V == pytest.approx(math.sqrt(A_LAT * 20.0))
+    many = ReferenceSelector(steady_circle_lookup, drift_circle(), params(flip_radius_max=20.0),
+                             lookup_many=lambda asks: [steady_circle_lookup(*a) for a in asks])
+    assert many._equilibria([(0.5, 0.0, 0.5)])[0][0] == mid   # the horizon's lookups too
+    off = ReferenceSelector(steady_circle_lookup, drift_circle(), params())
+    assert off.equilibrium(0.5, 0.0, 0.5)[0].V == pytest.approx(math.sqrt(A_LAT * 50.0))

@@ -67,6 +67,8 @@ class ReferenceParams:
                                   # caught: the reference continues from it (0: off)
     entry_lead: float = 0.0       # in the entry the sideslip reference leads the car's sideslip
                                   # to the drift side by at most this [rad] (0: off)
+    flip_radius_max: float = 0.0  # left and right blended (a flip, grip on a straight): looked
+                                  # up at most at this radius [m] (0: radius_max)
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
     window_forward: float = 15.0  # ... and ahead of it [m]
     lost_distance: float = 5.0    # beyond this distance from the path search globally [m]
@@ -192,9 +194,16 @@ class ReferenceSelector:
             direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
             eq, clamped = self._lookup(beta_abs, radius, direction)
             return eq, direction, clamped
+        radius = min(radius, self._flip_radius)
         left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
         return _blend(left, right, w), Direction.NONE, c_l or c_r
+
+    @property
+    def _flip_radius(self) -> float:
+        """The largest radius of a blended lookup [m]: a flip's speed and wheel speeds are those
+        of a drift this wide, however far the map reaches for the steady curves."""
+        return self.p.flip_radius_max or self.p.radius_max
 
     def _holdable(self, beta_abs: float, K_cmd: float, s: float) -> float:
         """The path's sideslip, or less where the car cannot hold it at this radius."""
@@ -379,6 +388,7 @@ class ReferenceSelector:
                 plan.append((direction, len(asks), None, w))
                 asks.append((beta_abs, radius, direction))
             else:
+                radius = min(radius, self._flip_radius)
                 plan.append((Direction.NONE, len(asks), len(asks) + 1, w))
                 asks += [(beta_abs, radius, Direction.LEFT), (beta_abs, radius, Direction.RIGHT)]
         found = self._lookup_many(asks)
