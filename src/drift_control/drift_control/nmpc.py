@@ -357,6 +357,22 @@ class Nmpc:
             x, u, mu, d = self._to_predict
             self._x1_pred, self._to_predict = self._period(x, u, mu) + d, None
 
+    def next_state(self, state: VehicleState) -> VehicleState | None:
+        """The last solve's prediction of ``state`` one control period on (the model's states,
+        the pose carried along with the mean yaw rate and course); None without a solve."""
+        self._predict()
+        x1 = self._x1_pred
+        if x1 is None or self._age != 0 or not state.has(Validity.POSE):
+            return None
+        Ts = self.params.Ts
+        V, beta, r = float(x1[X.V]), float(x1[X.BETA]), float(x1[X.R])
+        yaw = state.yaw + 0.5 * Ts * (state.r + r)
+        course = 0.5 * (state.yaw + state.beta + yaw + beta)
+        step = 0.5 * Ts * (state.V + V)
+        return replace(state, stamp=state.stamp + Ts, V=V, beta=beta, r=r,
+                       x=state.x + step * math.cos(course), y=state.y + step * math.sin(course),
+                       yaw=yaw, delta=float(x1[X.DELTA]))
+
     def _periods_in_stages(self, periods: int) -> float:
         return periods * self.params.Ts / self.params.dt
 

@@ -263,8 +263,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
             if new is not None:
                 command = new
                 solve_times.append(solve)
-            if ahead:
-                ref = selector.select(state) or ref
+            if ahead:   # on the state the plan expects at the next control instant
+                ref = selector.select(ctrl.nmpc.next_state(state) or state) or ref
             ctrl.prepare()
         state = sim.step(command)
         tr = sim.sample()

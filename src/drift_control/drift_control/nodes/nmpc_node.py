@@ -152,7 +152,7 @@ class NmpcNode(Node):
             self._cmd_pub.publish(command)
         # the next cycle's reference from this state, off the state -> command path (the NMPC
         # moves it on by its age: Reference.at)
-        self._ref = self._selector.select(state) or self._ref
+        self._ref = self._selector.select(self._nmpc.next_state(state) or state) or self._ref
         ref = convert.reference_to_msg(self._ref, msg.header.stamp) if self._ref else None
         if ref is not None:
             self._ref_pub.publish(ref)
