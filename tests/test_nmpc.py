@@ -733,3 +733,19 @@ def test_a_reference_selected_a_period_ago_is_solved_from_now_on(nmpc, eq30, mon
     shift = TS / nmpc.params.dt
     assert seen[-1].target.V == pytest.approx(eq30.V + 0.01 * shift)
     assert seen[-1].horizon[-1] == stages[-1]
+
+
+def test_the_state_predicted_one_period_on_carries_the_pose(nmpc, eq30):
+    """What the selector after the command selects on: the model's state one control period
+    after a solve, the pose moved along the course; nothing without a solve."""
+    nmpc.reset()
+    x = perturbed_start(eq30)
+    state = dataclasses.replace(measure(x, 1.0), x=0.0, y=0.0, yaw=0.3)
+    assert nmpc.next_state(state) is None
+    assert nmpc.step(state, Reference(1.0, eq30, Direction.LEFT), 1.0).status == NmpcStatus.OK
+    nxt = nmpc.next_state(state)
+    assert nxt.stamp == pytest.approx(1.0 + TS)
+    assert nxt.V == pytest.approx(state.V, abs=0.5) and nxt.beta == pytest.approx(state.beta, abs=0.05)
+    course = state.yaw + state.beta
+    assert math.hypot(nxt.x, nxt.y) == pytest.approx(TS * state.V, rel=0.05)
+    assert math.atan2(nxt.y, nxt.x) == pytest.approx(course, abs=0.05)
