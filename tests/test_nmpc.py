@@ -745,7 +745,8 @@ def test_the_state_predicted_one_period_on_carries_the_pose(nmpc, eq30):
     assert nmpc.step(state, Reference(1.0, eq30, Direction.LEFT), 1.0).status == NmpcStatus.OK
     nxt = nmpc.next_state(state)
     assert nxt.stamp == pytest.approx(1.0 + TS)
-    assert nxt.V == pytest.approx(state.V, abs=0.5) and nxt.beta == pytest.approx(state.beta, abs=0.05)
+    assert nxt.V == pytest.approx(state.V, abs=0.5)
+    assert nxt.beta == pytest.approx(state.beta, abs=0.05)
     course = state.yaw + state.beta
     assert math.hypot(nxt.x, nxt.y) == pytest.approx(TS * state.V, rel=0.05)
     assert math.atan2(nxt.y, nxt.x) == pytest.approx(course, abs=0.05)

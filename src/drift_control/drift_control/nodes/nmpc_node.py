@@ -3,8 +3,9 @@
 ``state_source: sensors``: the estimator and the reference selector run in this process as
 library stages, on vehicle/sensors: one DDS hop from the sensor samples to the command instead
 of three (docs/estimator.md has the measurements). The estimator runs before the NMPC, the
-selector after the command (the next cycle's reference, moved on by its age in the NMPC); the
-estimated state and the reference are published after the command, for the recorder and the view.
+selector after the command (the next cycle's reference, on the state the NMPC predicts for it);
+the estimated state and the reference are published after the command, for the recorder and the
+view.
 """
 import sys
 import time
@@ -150,8 +151,8 @@ class NmpcNode(Node):
         command = convert.command_to_msg(result.command, stamp)
         if not self._sim_time:   # real time: the command out before anything else is built
             self._cmd_pub.publish(command)
-        # the next cycle's reference from this state, off the state -> command path (the NMPC
-        # moves it on by its age: Reference.at)
+        # the next cycle's reference, off the state -> command path: on the state the plan
+        # expects then (this state without a plan; the NMPC moves an older one on: Reference.at)
         self._ref = self._selector.select(self._nmpc.next_state(state) or state) or self._ref
         ref = convert.reference_to_msg(self._ref, msg.header.stamp) if self._ref else None
         if ref is not None:
