@@ -1,12 +1,14 @@
 """drift_control.estimator on synthetic drives through drift_sim.sensors: convergence, latency
 compensation, IMU bias estimation, named sensor faults within 100 ms, and its parameters."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from conftest import load_script
 
-from drift_control.estimator import E, Estimator, LatestSamples, _Monitor, load_estimator_params
+from drift_control.estimator import (E, Estimator, LatestSamples, _Monitor, effective_samples,
+                                     load_estimator_params, mean_nis_interval)
 from drift_control.params import ParamError, config_dir, load_vehicle
 from drift_control.signals import Validity, VehicleState
 from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
@@ -163,6 +165,38 @@ def test_the_bias_test_rarely_names_a_consistent_innovation_sequence():
     assert verdicts.count('step') == 0
 
 
+def test_effective_samples_and_the_interval_of_a_mean_nis():
+    """Independent chi^2(1) samples count as themselves; those of AR(1) innovations (phi 0.9)
+    as about n (1 - phi^2) / (1 + phi^2); the interval is chi^2's within 0.1 %."""
+    from scipy.stats import chi2
+    rng = np.random.default_rng(1)
+    white = rng.standard_normal(20_000)
+    assert effective_samples(white ** 2) == pytest.approx(20_000, rel=0.1)
+    ar = np.zeros(white.size)
+    for k in range(1, ar.size):
+        ar[k] = 0.9 * ar[k - 1] + math.sqrt(1.0 - 0.81) * white[k]
+    assert effective_samples(ar ** 2) == pytest.approx(20_000 * 0.19 / 1.81, rel=0.25)
+    for n in (30, 500, 5000):
+        lo, hi = mean_nis_interval(n)
+        assert lo == pytest.approx(chi2.ppf(0.025, n) / n, rel=1e-3)
+        assert hi == pytest.approx(chi2.ppf(0.975, n) / n, rel=1e-3)
+
+
+def test_the_actual_covariance_is_the_filters_own_when_the_weights_are_the_noise():
+    """Weights at the sensors' own noise: the filter's P is the error covariance it has. The
+    default trusts the IMU over the INS speed and sideslip: P overstates that error."""
+    same = replace(PARAMS, ins_std=PARAMS.ins_noise_std, ins_test_std=PARAMS.ins_noise_std,
+                   gyro_std=PARAMS.gyro_noise_std)
+    est, *_ = drive(5.0, estimator=Estimator(VEHICLE, same))
+    np.testing.assert_allclose(est.P_act, est.P, rtol=1e-6, atol=1e-14)
+    est, *_ = drive(5.0)
+    for i in (E.VX, E.VY):
+        assert est.P_act[i, i] < 0.8 * est.P[i, i]
+    nis = est.nis_summary()['ins.r']
+    assert nis['n'] > 400 and nis['n_eff'] <= nis['n']
+    assert nis['interval_95'][0] < nis['mean'] < nis['interval_95'][1]
+
+
 def test_bad_estimator_parameters_name_the_key(tmp_path):
     with pytest.raises(ParamError, match='estimator.gate'):
         load_estimator_params(config_dir() / 'estimator.yaml', ['gate=-1'])
@@ -170,6 +204,10 @@ def test_bad_estimator_parameters_name_the_key(tmp_path):
         load_estimator_params(config_dir() / 'estimator.yaml', ['gaet=1'])
     with pytest.raises(ParamError, match='estimator.ins_std'):
         load_estimator_params(config_dir() / 'estimator.yaml', ['ins_std.vz=0.1'])
+    with pytest.raises(ParamError, match='estimator.ins_noise_std'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['ins_noise_std.vz=0.1'])
+    with pytest.raises(ParamError, match='gyro_noise_std'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['gyro_noise_std=-1'])
 
 
 def test_frame_stepper_answers_a_repeated_frame_and_restarts_on_a_clock_step_back():

@@ -95,6 +95,10 @@ class EstimatorParams:
     stuck_samples: int          # such readings in a row [-]
     max_coast: float            # without velocity aiding longer than this: V, beta invalid [s]
     timeout: float              # a unit silent this long has dropped out [s]
+    ins_noise_std: dict[str, float] | None = None   # the INS's white noise, and the IMU's ...
+    accel_noise_std: float = 0.0    # [m/s^2] and ...
+    gyro_noise_std: float = 0.0     # [rad/s]: the NIS on the filter's actual covariance (None,
+                                    # 0: the test noise and the weights)
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -107,8 +111,12 @@ class EstimatorParams:
         require(self.jump_gate > self.gate, 'estimator.jump_gate', 'must exceed gate')
         for name in ('persist', 'bias_window', 'frozen_samples', 'stuck_samples'):
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
-        for key in ('ins_std', 'ins_test_std'):
+        require(self.accel_noise_std >= 0 and self.gyro_noise_std >= 0, 'estimator',
+                'accel_noise_std and gyro_noise_std must be >= 0 (0: the weights)')
+        for key in ('ins_std', 'ins_test_std', 'ins_noise_std'):
             given = getattr(self, key)
+            if given is None:
+                continue
             missing = sorted(set(FIELDS['ins']) - set(given))
             unknown = sorted(set(given) - set(FIELDS['ins']))
             require(not missing and not unknown, f'estimator.{key}',
@@ -143,10 +151,11 @@ class _Monitor:
         self.last = value
         return self.same >= self.p.frozen_samples
 
-    def judge(self, nis: float, normalised: float, stamp: float) -> str:
+    def judge(self, nis: float, normalised: float, stamp: float,
+              consistency: float | None = None) -> str:
         """'accept', 'reject', 'jump', 'step' or 'bias' for one innovation of a sample
-        stamped ``stamp``."""
-        self.nis.append(nis)
+        stamped ``stamp``; ``consistency`` is the NIS recorded (default ``nis``)."""
+        self.nis.append(nis if consistency is None else consistency)
         self.window.append(normalised)   # a rejected sample is evidence of a bias too
         self.stamps.append(stamp)
         if nis > self.p.gate:
@@ -230,6 +239,10 @@ class Estimator:
         self.x: np.ndarray | None = None
         self.P = np.diag([0.1, 0.1, 1e-4, 0.1, 0.1, p.accel_bias_std0 ** 2,
                           p.accel_bias_std0 ** 2, p.gyro_bias_std0 ** 2])
+        # the error covariance the filter actually has: its gains, the sensors' own white noise
+        self.P_act = self.P.copy()
+        self._q_act = np.diag([(p.accel_noise_std or p.accel_std) ** 2] * 2
+                              + [(p.gyro_noise_std or p.gyro_std) ** 2])
         self.t = -math.inf                 # the EKF's time (the fusion horizon) [s]
         self._imu: deque = deque(maxlen=64)   # (stamp, ax, ay, r), newest last
         self._u = None                     # IMU input held since the EKF's time
@@ -339,12 +352,14 @@ class Estimator:
         G = F[:, [E.B_AX, E.B_AY, E.B_R]].copy()
         G[E.B_AX:E.B_R + 1] = 0.0
         q = np.diag([p.accel_std ** 2, p.accel_std ** 2, p.gyro_std ** 2])
-        Q = G @ q @ G.T
-        Q[E.B_AX, E.B_AX] += p.accel_bias_walk ** 2 * h
-        Q[E.B_AY, E.B_AY] += p.accel_bias_walk ** 2 * h
-        Q[E.B_R, E.B_R] += p.gyro_bias_walk ** 2 * h
+        Q, Q_act = G @ q @ G.T, G @ self._q_act @ G.T
+        for M in (Q, Q_act):
+            M[E.B_AX, E.B_AX] += p.accel_bias_walk ** 2 * h
+            M[E.B_AY, E.B_AY] += p.accel_bias_walk ** 2 * h
+            M[E.B_R, E.B_R] += p.gyro_bias_walk ** 2 * h
         self.x = self._f(x, u, h)
         self.P = F @ self.P @ F.T + Q
+        self.P_act = F @ self.P_act @ F.T + Q_act
 
     def _predict_to(self, t: float) -> None:
         """Advance the EKF to ``t`` on the IMU samples in between (each held until the next)."""
@@ -356,17 +371,26 @@ class Estimator:
         self.t = max(self.t, t)
 
     def _scalar_update(self, name: str, z: float, h: float, H: np.ndarray, R: float,
-                       wrap: bool = False, R_test: float | None = None) -> str:
-        """One scalar EKF update weighted by ``R``, its fault test and NIS on ``R_test`` (the
-        sensor's own noise; default ``R``); returns the monitor's verdict."""
+                       wrap: bool = False, R_test: float | None = None,
+                       R_noise: float | None = None) -> str:
+        """One scalar EKF update weighted by ``R``; returns the monitor's verdict.
+
+        The fault test judges the innovation on ``R_test`` (the sensor's noise with its slow
+        errors; default ``R``) and the filter's ``P``: conservative, for few false alarms. The
+        NIS is the innovation's consistency: on the sensor's white noise ``R_noise`` (default
+        ``R_test``) and the covariance the filter actually has, ``P_act`` -- its ``P``
+        overstates its error where the weights trust the IMU more than the sensor's noise does.
+        """
         mon = self.monitors[name]
         nu = z - h
         if wrap:
             nu = math.remainder(nu, 2.0 * math.pi)
-        PH = self.P @ H
+        R_test = R if R_test is None else R_test
+        R_noise = R_test if R_noise is None else R_noise
+        PH, PH_act = self.P @ H, self.P_act @ H
         HPH = float(H @ PH)
-        S, S_test = HPH + R, HPH + (R if R_test is None else R_test)
-        verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t)
+        S, S_test, S_act = HPH + R, HPH + R_test, float(H @ PH_act) + R_noise
+        verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t, nu * nu / S_act)
         if verdict in ('reject', 'jump'):
             if verdict == 'jump':
                 self._event(name, 'jump')
@@ -374,12 +398,15 @@ class Estimator:
         pose = name in ('ins.x', 'ins.y', 'ins.yaw')   # a GNSS error is slow: no bias test
         if verdict == 'step' or (verdict == 'bias' and not pose):
             self._blame(name, verdict)
-            PH = self.P @ H
-            S = float(H @ PH) + R
+            PH, PH_act = self.P @ H, self.P_act @ H
+            S, S_act = float(H @ PH) + R, float(H @ PH_act) + R_noise
         K = PH / S
         self.x = self.x + K * nu
         self.P = self.P - np.outer(K, PH)
         self.P = 0.5 * (self.P + self.P.T)
+        # (I - K H) P_act (I - K H)' + K R_noise K': the filter's gain on the actual covariance
+        KPH = np.outer(K, PH_act)
+        self.P_act = self.P_act - KPH - KPH.T + S_act * np.outer(K, K)
         return verdict
 
     def _blame(self, name: str, verdict: str) -> None:
@@ -394,14 +421,15 @@ class Estimator:
             idx, channel, var = [E[name.split('.')[1].upper().replace('YAW', 'PSI')]], name, 1.0
         if name == 'ins.r':
             self.yaw_rate.x = None   # it filtered the old bias's correction: starts again
-        for i in idx:
-            self.P[i, :] = 0.0
-            self.P[:, i] = 0.0
-            self.P[i, i] = var
-        if channel == 'imu.ax/ay':   # the velocity integrated the step until it was seen
-            span = self.monitors[name].span
-            for i in (E.VX, E.VY):
-                self.P[i, i] += var * span * span
+        span = self.monitors[name].span
+        for P in (self.P, self.P_act):
+            for i in idx:
+                P[i, :] = 0.0
+                P[:, i] = 0.0
+                P[i, i] = var
+            if channel == 'imu.ax/ay':   # the velocity integrated the step until it was seen
+                for i in (E.VX, E.VY):
+                    P[i, i] += var * span * span
         reason = 'bias step' if channel.startswith('imu') else f'{verdict} accepted'
         if not any(e.channel == channel and e.reason == reason and self._now - e.t < 1.0
                    for e in self.events[-8:]):   # one fault, one name: not once per window
@@ -433,8 +461,11 @@ class Estimator:
                 H[i] = 1.0
                 h, wrap = x[i], name == 'yaw'
             gyro = self.p.gyro_std ** 2 if name == 'r' else 0.0   # the IMU's r is in h
-            verdict = self._scalar_update(f'ins.{name}', z, h, H, std[name] ** 2 + gyro, wrap,
-                                          self.p.ins_test_std[name] ** 2 + gyro)
+            noise = self.p.ins_noise_std or self.p.ins_test_std
+            verdict = self._scalar_update(
+                f'ins.{name}', z, h, H, std[name] ** 2 + gyro, wrap,
+                self.p.ins_test_std[name] ** 2 + gyro,
+                noise[name] ** 2 + (self._q_act[2, 2] if name == 'r' else 0.0))
             aided |= name in ('V', 'beta') and verdict not in ('reject', 'jump')
         if aided:
             self._last_aided = s.stamp
@@ -571,17 +602,51 @@ class Estimator:
             mon.nis.clear()
 
     def nis_summary(self) -> dict[str, dict]:
-        """Per channel: samples, mean NIS and the share within the 95 % chi^2(1) bound."""
+        """Per channel: samples, mean NIS, the share within the 95 % chi^2(1) bound, and the
+        95 % interval of the mean of a consistent filter's NIS for that many samples, counted
+        as independent ones (``n_eff``: successive innovations are correlated)."""
         out = {}
         for name, mon in self.monitors.items():
             if mon.nis:
                 nis = np.asarray(mon.nis)
+                n_eff = effective_samples(nis)
                 out[name] = {'n': int(nis.size), 'mean': float(nis.mean()),
-                             'within_95': float(np.mean(nis <= CHI2_1_95))}
+                             'within_95': float(np.mean(nis <= CHI2_1_95)),
+                             'n_eff': n_eff, 'interval_95': mean_nis_interval(n_eff)}
         return out
 
 
 CHI2_1_95 = 3.841   # 95 % quantile of chi^2 with one degree of freedom
+
+
+def effective_samples(series) -> float:
+    """How many independent samples the mean of ``series`` is worth: ``n / tau``, with the
+    integrated autocorrelation ``tau`` summed over Geyer's initial positive sequence (pairs of
+    autocorrelations, up to the first pair that is not positive)."""
+    x = np.asarray(series, dtype=float)
+    n = x.size
+    x = x - x.mean()
+    var = float(x @ x)
+    if n < 4 or var <= 0.0:
+        return float(n)
+    f = np.fft.rfft(x, 2 * n)
+    rho = np.fft.irfft(f * np.conj(f))[:n] / var
+    tau = -1.0
+    for k in range(0, n - 1, 2):
+        pair = rho[k] + rho[k + 1]
+        if pair <= 0.0:
+            break
+        tau += 2.0 * pair
+    return float(n / max(tau, 1.0))
+
+
+def mean_nis_interval(n_eff: float, dof: int = 1) -> tuple[float, float]:
+    """95 % interval of the mean NIS of a consistent filter (``dof`` per sample) over
+    ``n_eff`` independent samples: chi^2(n_eff dof) / n_eff, by Wilson and Hilferty's cube-root
+    approximation (within 0.1 % from 30 degrees of freedom)."""
+    k = n_eff * dof
+    c = 2.0 / (9.0 * k)
+    return tuple(float(dof * (1.0 - c + z * math.sqrt(c)) ** 3) for z in (-1.959964, 1.959964))
 
 
 class LatestSamples:
@@ -663,4 +728,4 @@ class FrameStepper:
 
 __all__ = ['CHI2_1_95', 'E', 'ESTIMATORS', 'Estimator', 'EstimatorParams', 'FIELDS', 'FaultEvent',
            'FrameStepper', 'LatestSamples', 'SensorSample', 'build_estimator',
-           'load_estimator_params']
+           'effective_samples', 'load_estimator_params', 'mean_nis_interval']
