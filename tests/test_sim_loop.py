@@ -104,6 +104,11 @@ def test_metrics_on_synthetic_series():
     assert math.isnan(metrics.spin_time(t, beta))
     spun = np.where(t > 6.0, -1.6, beta)
     assert metrics.spin_time(t, spun) == pytest.approx(6.01, abs=0.011)
+    # a car that stopped at 8 s: its sideslip beyond 75 deg from then on is no spin
+    stopped = np.where(t > 8.0, -1.6, beta)
+    V = np.where(t > 8.0, 0.05, 9.0)
+    assert math.isnan(metrics.spin_time(t, stopped, V=V))
+    assert metrics.spin_time(t, spun, V=V) == pytest.approx(6.01, abs=0.011)
     out = metrics.summary(t, spun, beta_ref, 0.1 * t, [(0, 5)], 5.0, math.radians(10),
                           [0.001, 0.002, 0.010], wall_time=1.0)
     assert out['spun'] and out['max_abs_e_y_m'] == pytest.approx(0.999)

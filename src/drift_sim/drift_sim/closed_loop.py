@@ -304,7 +304,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
         transient_end = max(transient_end, windows[0][0] if windows else math.inf)
     out = metrics.summary(data['t'], data['beta'], beta_ref, data['e_y'], windows,
                           transient_end, math.radians(sc.metrics.drift_beta_deg),
-                          solve_times, wall)
+                          solve_times, wall, V=data['V'])
     out['laps_in_steady_drift'] = metrics.laps(data['t'], data['s'], windows,
                                                loaded.path.length) if loaded.path.closed else None
     out['supervisor_trip_s'] = getattr(ctrl, 'trip_time', None)

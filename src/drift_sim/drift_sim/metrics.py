@@ -9,7 +9,9 @@ import math
 
 import numpy as np
 
-SPIN_BETA = math.radians(75.0)   # |beta| beyond this the car has spun [rad]
+SPIN_BETA = math.radians(75.0)   # |beta| beyond this the car has spun [rad] ...
+SPIN_MIN_SPEED = 1.0             # ... at this speed or more [m/s]: a stopped car's sideslip is
+                                 # the direction of its last creep, not a spin
 
 
 def in_windows(t, windows) -> np.ndarray:
@@ -97,9 +99,13 @@ def transition_time(t, beta, threshold: float) -> float:
     return math.nan
 
 
-def spin_time(t, beta, threshold: float = SPIN_BETA) -> float:
-    """First time |beta| exceeds ``threshold`` [s]; NaN when the car never spun."""
-    idx = np.flatnonzero(np.abs(np.asarray(beta)) > threshold)
+def spin_time(t, beta, threshold: float = SPIN_BETA, V=None) -> float:
+    """First time |beta| exceeds ``threshold`` [s], at ``SPIN_MIN_SPEED`` or more when the
+    speed ``V`` is given; NaN when the car never spun."""
+    spun = np.abs(np.asarray(beta)) > threshold
+    if V is not None:
+        spun &= np.asarray(V) >= SPIN_MIN_SPEED
+    idx = np.flatnonzero(spun)
     return float(np.asarray(t)[idx[0]]) if idx.size else math.nan
 
 
@@ -195,10 +201,11 @@ def percentiles(values, qs=(50, 99)) -> dict:
 
 
 def summary(t, beta, beta_ref, e_y, windows, transient_end: float, drift_beta: float,
-            solve_times=(), wall_time: float = math.nan) -> dict:
-    """The standard metrics of one run, as a JSON-ready dict (angles in degrees, suffixed)."""
+            solve_times=(), wall_time: float = math.nan, V=None) -> dict:
+    """The standard metrics of one run, as a JSON-ready dict (angles in degrees, suffixed);
+    with the speed ``V`` a spin counts only while the car moves."""
     t = np.asarray(t, dtype=float)
-    spun_at = spin_time(t, beta)
+    spun_at = spin_time(t, beta, V=V)
     duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
     solve = percentiles(np.asarray(solve_times, dtype=float) * 1e3)
     return {

@@ -59,7 +59,8 @@ def run_metrics(run: RunSeries, windows=None, transient_end=None, wall_time=math
     e_y = resample(run.reference, t, 'e_y')
     solve = run.status.get('solve_time', np.zeros(0))
     out = metrics.summary(t, src['beta'], np.nan_to_num(beta_ref), np.nan_to_num(e_y), windows,
-                          transient_end, DRIFT_BETA, solve_times=solve, wall_time=wall_time)
+                          transient_end, DRIFT_BETA, solve_times=solve, wall_time=wall_time,
+                          V=src.get('V'))
     out.update({
         'steady_windows_s': windows,
         'transient_end_s': transient_end,
