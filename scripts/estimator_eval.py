@@ -103,8 +103,12 @@ def main(argv=None) -> int:
                      if k not in ('nis', 'events')}
             print(json.dumps(brief), flush=True)
             if 'nis' in row:
-                print('  NIS mean / share within 95 %:', {k: (round(v['mean'], 2),
-                      round(v['within_95'], 3)) for k, v in row['nis'].items()})
+                print('  NIS mean [its 95 % interval] / share within 95 %:')
+                for name, v in row['nis'].items():
+                    lo, hi = v['interval_95']
+                    side = 'low' if v['mean'] < lo else 'high' if v['mean'] > hi else 'within'
+                    print(f'    {name:22s} {v["mean"]:6.2f} [{lo:.2f}, {hi:.2f}] {side:6s} '
+                          f'{v["within_95"]:.3f}')
                 print('  events:', row['events'][:12], f'({len(row["events"])} in all)')
     if args.out:
         with open(args.out, 'w') as fh:
