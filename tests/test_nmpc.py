@@ -501,6 +501,28 @@ def test_torque_only_keeps_the_measured_steering(vp, params, plant, eq30):
     assert np.all(np.abs(xs[:, 1]) > math.radians(15.0)), 'the torque keeps the car drifting'
 
 
+def test_rear_lock_slip_keeps_the_plans_rear_wheel_rolling(vp, params):
+    """An entry that over-rotates (M3 steady_dry seed 4 through the EKF at 3.5 s): the plan
+    brakes the rear through standstill into reverse, which engine braking cannot do; with
+    ``rear_lock_slip`` its wheel keeps within that slip of the axle's speed."""
+    eq = solve_equilibrium(math.radians(-16.3), 15.0, vp).eq
+    x = [10.3, math.radians(-16.3), 1.22, 31.0, 36.7, math.radians(5.8)]
+    for lock, rolling in ((0.0, False), (0.15, True)):
+        ctrl = Nmpc(vp, dataclasses.replace(params, rear_lock_slip=lock))
+        for k in range(6):
+            now = k * TS
+            state = VehicleState(stamp=now, V=x[0] + 1e-9 * k, beta=x[1], r=x[2],
+                                 wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5])
+            res = ctrl.step(state, Reference(now, eq), now)
+        assert res.status == NmpcStatus.OK
+        P = res.predicted_states[1:]
+        floor = 0.85 * P[:, X.V] * np.cos(P[:, X.BETA]) / vp.R_R
+        assert bool(np.all(P[:, X.OMEGA_R] > floor - 0.5)) == rolling, P[:, X.OMEGA_R]
+    assert P[:, X.OMEGA_R].min() > 0.0
+    with pytest.raises(ParamError, match='nmpc.rear_lock_slip'):
+        dataclasses.replace(params, rear_lock_slip=1.0)
+
+
 # --- solver backends ---------------------------------------------------------------------------
 
 def test_gcc_missing_falls_back_to_interpreted(vp, params, eq30, monkeypatch):

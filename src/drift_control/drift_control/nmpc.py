@@ -107,6 +107,7 @@ class Nmpc:
                             * simple_peak_slip(vehicle_params.front_tyre.lateral)
                             if mode == Mode.FULL and nmpc_params.front_slip_max > 0 else 0.0)
         self._a = vehicle_params.a
+        self._rear_lock, self._R_R = nmpc_params.rear_lock_slip, vehicle_params.R_R
         self.supervisor = Supervisor(supervisor) if supervisor is not None else None
         self.inputs = InputChecker(vehicle_params, nmpc_params.inputs)
         self.reset()
@@ -123,7 +124,7 @@ class Nmpc:
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
         self._to_predict: tuple | None = None      # ... before it is worked out: (x, u, mu, d)
         self._guess: tuple | None = None           # (solution, age, the warm start from it,
-                                                   # its front axle courses)
+                                                   # its front axle courses, rear wheel floors)
         self._flipping = False                     # the reference flips sides (latched)
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
@@ -247,6 +248,10 @@ class Nmpc:
             w0, iterations = self._warm_guess(), self.params.solver.max_iter
             if self._front_slip > 0.0:
                 self._front_slip_band(lbw, ubw, self._guess[3], x_init[X.DELTA])
+            i = X.OMEGA_R
+            for floor in self._guess[4]:   # the rear wheel's floors (none when off)
+                i += NS + NU
+                lbw[i] = max(lbw[i], floor)
         w0[:NS] = x_init
         t0 = time.perf_counter()
         try:
@@ -331,6 +336,20 @@ class Nmpc:
         return tuple(front_axle_course(w0[i + X.V], w0[i + X.BETA], w0[i + X.R], a)
                      for i in range(nz, (self.params.N + 1) * nz, nz))
 
+    def _rear_floors(self, w0) -> tuple[float, ...]:
+        """The rear wheel speed's lower bounds at stages 1 .. N of ``w0`` (its braking slip at
+        most ``rear_lock_slip`` of the axle's speed); none when off.
+
+        Engine braking that locks the rear is where the combined-slip tyre model is least like
+        a real tyre: a plan that stops an over-rotating entry by locking the rear (the model's
+        lateral force holds) meets a plant whose rear slides further.
+        """
+        if self._rear_lock <= 0.0:
+            return ()
+        nz, scale = NS + NU, (1.0 - self._rear_lock) / self._R_R
+        return tuple(scale * w0[i + X.V] * math.cos(w0[i + X.BETA])
+                     for i in range(nz, (self.params.N + 1) * nz, nz))
+
     # --- warm start and failures -----------------------------------------------------------
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
         """Hold the initial state over the horizon, inputs at the reference torque."""
@@ -348,7 +367,7 @@ class Nmpc:
             shift = self._periods_in_stages(age + 1) \
                 if self.params.solver.warm_start == 'shifted' else 0.0
             guess = self._shifted(w, shift)
-            self._guess = w, age, guess, self._front_courses(guess)
+            self._guess = w, age, guess, self._front_courses(guess), self._rear_floors(guess)
         return self._guess[2].copy()
 
     def _predict(self) -> None:

@@ -157,6 +157,8 @@ class NmpcParams:
                                     # the first, the full braking bound above the second (off: 0)
     front_slip_max: float = 0.0     # the plan's steering keeps the front slip angle within
                                     # this many times the model's front peak slip (0: off)
+    rear_lock_slip: float = 0.0     # the plan brakes the rear wheel to at most this
+                                    # longitudinal slip, kappa >= -this (0: off)
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
@@ -172,6 +174,7 @@ class NmpcParams:
                 'must be in [0, N)')
         require(self.torque_lag >= 0, 'nmpc.torque_lag', 'must be >= 0')
         require(self.front_slip_max >= 0, 'nmpc.front_slip_max', 'must be >= 0 (0: off)')
+        require(0 <= self.rear_lock_slip < 1, 'nmpc.rear_lock_slip', 'must be in [0, 1) (0: off)')
         low, high = self.brake_speed_ratio if len(self.brake_speed_ratio) == 2 else (-1, -1)
         require(0 <= low <= high, 'nmpc.brake_speed_ratio',
                 'must be [low, high] with 0 <= low <= high ([0, 0]: off)')
