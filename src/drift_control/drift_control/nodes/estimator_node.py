@@ -72,7 +72,8 @@ def estimator_status(stepper: FrameStepper) -> DiagnosticStatus:
     if times.size:
         status.values.append(KeyValue(key='step_ms_p50', value=f'{np.median(times):.3f}'))
         status.values.append(KeyValue(key='step_ms_max', value=f'{times.max():.3f}'))
-    for name, nis in (est.nis_summary() if hasattr(est, 'nis_summary') else {}).items():
+    for name, nis in (est.nis_summary(intervals=False) if hasattr(est, 'nis_summary')
+                      else {}).items():
         status.values.append(KeyValue(key=f'nis_mean {name}', value=f'{nis["mean"]:.2f}'))
     events = getattr(est, 'events', ())
     if events:
