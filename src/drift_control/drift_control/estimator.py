@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import NamedTuple
 
@@ -99,6 +99,9 @@ class EstimatorParams:
     accel_noise_std: float = 0.0    # [m/s^2] and ...
     gyro_noise_std: float = 0.0     # [rad/s]: the NIS on the filter's actual covariance (None,
                                     # 0: the test noise and the weights)
+    ins_slow_std: dict[str, float] = field(default_factory=dict)   # INS channels' slow
+    ins_slow_tau: dict[str, float] = field(default_factory=dict)   # (Gauss-Markov) error: its
+                                    # std and correlation time [s], in the actual covariance
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -113,6 +116,12 @@ class EstimatorParams:
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
         require(self.accel_noise_std >= 0 and self.gyro_noise_std >= 0, 'estimator',
                 'accel_noise_std and gyro_noise_std must be >= 0 (0: the weights)')
+        require(set(self.ins_slow_std) == set(self.ins_slow_tau)
+                and set(self.ins_slow_std) <= set(FIELDS['ins']), 'estimator.ins_slow_std',
+                f'and ins_slow_tau need the same channels, of {list(FIELDS["ins"])}')
+        for key in ('ins_slow_std', 'ins_slow_tau'):
+            for k, v in getattr(self, key).items():
+                require(v > 0, f'estimator.{key}.{k}', 'must be positive')
         for key in ('ins_std', 'ins_test_std', 'ins_noise_std'):
             given = getattr(self, key)
             if given is None:
@@ -239,8 +248,15 @@ class Estimator:
         self.x: np.ndarray | None = None
         self.P = np.diag([0.1, 0.1, 1e-4, 0.1, 0.1, p.accel_bias_std0 ** 2,
                           p.accel_bias_std0 ** 2, p.gyro_bias_std0 ** 2])
-        # the error covariance the filter actually has: its gains, the sensors' own white noise
-        self.P_act = self.P.copy()
+        # the error covariance the filter actually has: its gains, the sensors' own white noise,
+        # and after the EKF's states the INS channels' slow errors, which it does not estimate
+        slow = list(p.ins_slow_std)
+        self._slow = {f'ins.{name}': NE + i for i, name in enumerate(slow)}
+        self._slow_var = np.array([p.ins_slow_std[name] ** 2 for name in slow])
+        self._slow_tau = np.array([p.ins_slow_tau[name] for name in slow])
+        self.P_act = np.zeros((NE + len(self._slow),) * 2)
+        self.P_act[:NE, :NE] = self.P
+        self.P_act[NE:, NE:] = np.diag(self._slow_var)
         self._q_act = np.diag([(p.accel_noise_std or p.accel_std) ** 2] * 2
                               + [(p.gyro_noise_std or p.gyro_std) ** 2])
         self.t = -math.inf                 # the EKF's time (the fusion horizon) [s]
@@ -327,13 +343,16 @@ class Estimator:
         """Kinematic model over ``h`` seconds: the IMU's accelerations and yaw rate drive it."""
         _, ax, ay, r_m = u
         r = r_m - x[E.B_R]
-        c, s = math.cos(x[E.PSI]), math.sin(x[E.PSI])
         out = x.copy()
         out[E.VX] += h * (ax - x[E.B_AX] + r * x[E.VY])
         out[E.VY] += h * (ay - x[E.B_AY] - r * x[E.VX])
         out[E.PSI] += h * r
-        out[E.X] += h * (x[E.VX] * c - x[E.VY] * s)
-        out[E.Y] += h * (x[E.VX] * s + x[E.VY] * c)
+        # the pose on the mean of the step's start and end velocities in the world (trapezoid):
+        # Euler's start-of-step heading puts a drifting car ~h^2 V r / 2 inside its arc per step
+        c0, s0 = math.cos(x[E.PSI]), math.sin(x[E.PSI])
+        c1, s1 = math.cos(out[E.PSI]), math.sin(out[E.PSI])
+        out[E.X] += 0.5 * h * (x[E.VX] * c0 - x[E.VY] * s0 + out[E.VX] * c1 - out[E.VY] * s1)
+        out[E.Y] += 0.5 * h * (x[E.VX] * s0 + x[E.VY] * c0 + out[E.VX] * s1 + out[E.VY] * c1)
         return out
 
     def _propagate(self, h: float) -> None:
@@ -359,7 +378,14 @@ class Estimator:
             M[E.B_R, E.B_R] += p.gyro_bias_walk ** 2 * h
         self.x = self._f(x, u, h)
         self.P = F @ self.P @ F.T + Q
-        self.P_act = F @ self.P_act @ F.T + Q_act
+        P_act = self.P_act
+        if self._slow:   # the slow errors decay as first-order Gauss-Markov processes
+            phi = np.exp(-h / self._slow_tau)
+            P_act[:NE, NE:] = F @ P_act[:NE, NE:] * phi
+            P_act[NE:, :NE] = P_act[:NE, NE:].T
+            P_act[NE:, NE:] *= np.outer(phi, phi)
+            P_act[NE:, NE:] += np.diag(self._slow_var * (1.0 - phi * phi))
+        P_act[:NE, :NE] = F @ P_act[:NE, :NE] @ F.T + Q_act
 
     def _predict_to(self, t: float) -> None:
         """Advance the EKF to ``t`` on the IMU samples in between (each held until the next)."""
@@ -387,9 +413,13 @@ class Estimator:
             nu = math.remainder(nu, 2.0 * math.pi)
         R_test = R if R_test is None else R_test
         R_noise = R_test if R_noise is None else R_noise
-        PH, PH_act = self.P @ H, self.P_act @ H
+        H_act = np.zeros(len(self.P_act))   # the slow error, if the channel has one, is in z
+        H_act[:NE] = H
+        if name in self._slow:
+            H_act[self._slow[name]] = 1.0
+        PH, PH_act = self.P @ H, self.P_act @ H_act
         HPH = float(H @ PH)
-        S, S_test, S_act = HPH + R, HPH + R_test, float(H @ PH_act) + R_noise
+        S, S_test, S_act = HPH + R, HPH + R_test, float(H_act @ PH_act) + R_noise
         verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t, nu * nu / S_act)
         if verdict in ('reject', 'jump'):
             if verdict == 'jump':
@@ -398,15 +428,18 @@ class Estimator:
         pose = name in ('ins.x', 'ins.y', 'ins.yaw')   # a GNSS error is slow: no bias test
         if verdict == 'step' or (verdict == 'bias' and not pose):
             self._blame(name, verdict)
-            PH, PH_act = self.P @ H, self.P_act @ H
-            S, S_act = float(H @ PH) + R, float(H @ PH_act) + R_noise
+            PH, PH_act = self.P @ H, self.P_act @ H_act
+            S, S_act = float(H @ PH) + R, float(H_act @ PH_act) + R_noise
         K = PH / S
         self.x = self.x + K * nu
         self.P = self.P - np.outer(K, PH)
         self.P = 0.5 * (self.P + self.P.T)
         # (I - K H) P_act (I - K H)' + K R_noise K': the filter's gain on the actual covariance
-        KPH = np.outer(K, PH_act)
-        self.P_act = self.P_act - KPH - KPH.T + S_act * np.outer(K, K)
+        # (K is zero on the slow errors: they are the sensor's, no update moves them)
+        K_act = np.zeros(len(self.P_act))
+        K_act[:NE] = K
+        KPH = np.outer(K_act, PH_act)
+        self.P_act = self.P_act - KPH - KPH.T + S_act * np.outer(K_act, K_act)
         return verdict
 
     def _blame(self, name: str, verdict: str) -> None:
