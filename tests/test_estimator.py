@@ -165,6 +165,14 @@ def test_the_bias_test_rarely_names_a_consistent_innovation_sequence():
     assert verdicts.count('step') == 0
 
 
+def test_a_live_signal_is_not_called_frozen():
+    """The INS sideslip's noise is 1.75 LSB: over 100,000 samples of a live one (1,000 s at
+    100 Hz) no run of identical values is long enough to be named frozen (7 would name ~2)."""
+    mon = _Monitor('ins.beta', PARAMS)
+    z = np.round(np.random.default_rng(0).normal(0.0, 1.75, 100_000))
+    assert not any(mon.frozen(v) for v in z)
+
+
 def test_effective_samples_and_the_interval_of_a_mean_nis():
     """Independent chi^2(1) samples count as themselves; those of AR(1) innovations (phi 0.9)
     as about n (1 - phi^2) / (1 + phi^2); the interval is chi^2's within 0.1 %."""
