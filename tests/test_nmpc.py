@@ -523,6 +523,25 @@ def test_rear_lock_slip_keeps_the_plans_rear_wheel_rolling(vp, params):
         dataclasses.replace(params, rear_lock_slip=1.0)
 
 
+def test_rear_lock_slip_never_asks_a_braked_wheel_to_spin_up_before_it_can(vp, params):
+    """The rear wheel measured well below its floor while the braking torque is still on its
+    way (a wet entry that braked): the floors bind from the stage a request reaches the wheel,
+    so the plan is found and spins the wheel up to them."""
+    eq = solve_equilibrium(math.radians(-21.0), 15.0, vp).eq
+    ctrl = Nmpc(vp, dataclasses.replace(params, rear_lock_slip=0.15))
+    V, beta = 7.8, math.radians(-20.9)
+    floor = 0.85 * V * math.cos(beta) / vp.R_R
+    for k in range(6):
+        now = k * TS
+        state = VehicleState(stamp=now, V=V + 1e-9 * k, beta=beta, r=0.64,
+                             wheel_speeds=(23.0, 23.0, 0.6 * floor, 0.6 * floor),
+                             delta=math.radians(-11.7), drive_torque=-1400.0)
+        res = ctrl.step(state, Reference(now, eq), now)
+        assert res.status == NmpcStatus.OK, res
+    P = res.predicted_states
+    assert P[-1, X.OMEGA_R] > 0.84 * P[-1, X.V] * math.cos(P[-1, X.BETA]) / vp.R_R
+
+
 # --- solver backends ---------------------------------------------------------------------------
 
 def test_gcc_missing_falls_back_to_interpreted(vp, params, eq30, monkeypatch):

@@ -342,13 +342,17 @@ class Nmpc:
 
         Engine braking that locks the rear is where the combined-slip tyre model is least like
         a real tyre: a plan that stops an over-rotating entry by locking the rear (the model's
-        lateral force holds) meets a plant whose rear slides further.
+        lateral force holds) meets a plant whose rear slides further. The floors bind from the
+        stage a torque requested now has reached the wheel (``torque_lag``): a wheel measured
+        below its floor, with braking torque still on its way, could not reach it sooner, and
+        the QP would be infeasible.
         """
         if self._rear_lock <= 0.0:
             return ()
         nz, scale = NS + NU, (1.0 - self._rear_lock) / self._R_R
-        return tuple(scale * w0[i + X.V] * math.cos(w0[i + X.BETA])
-                     for i in range(nz, (self.params.N + 1) * nz, nz))
+        first = math.ceil(self.params.torque_lag / self.params.dt - 1e-9) + 1
+        return tuple(scale * w0[k * nz + X.V] * math.cos(w0[k * nz + X.BETA])
+                     if k >= first else -math.inf for k in range(1, self.params.N + 1))
 
     # --- warm start and failures -----------------------------------------------------------
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
