@@ -167,7 +167,7 @@ def test_the_bias_test_rarely_names_a_consistent_innovation_sequence():
 
 def test_a_live_signal_is_not_called_frozen():
     """The INS sideslip's noise is 1.75 LSB: over 100,000 samples of a live one (1,000 s at
-    100 Hz) no run of identical values is long enough to be named frozen (7 would name ~2)."""
+    100 Hz) no run of identical values is long enough to be named frozen (with 7: four)."""
     mon = _Monitor('ins.beta', PARAMS)
     z = np.round(np.random.default_rng(0).normal(0.0, 1.75, 100_000))
     assert not any(mon.frozen(v) for v in z)

@@ -108,6 +108,8 @@ class Nmpc:
                             if mode == Mode.FULL and nmpc_params.front_slip_max > 0 else 0.0)
         self._a = vehicle_params.a
         self._rear_lock, self._R_R = nmpc_params.rear_lock_slip, vehicle_params.R_R
+        # the first stage a torque requested now has reached the wheel (``_rear_floors``)
+        self._rear_first = math.ceil(nmpc_params.torque_lag / nmpc_params.dt - 1e-9) + 1
         self.supervisor = Supervisor(supervisor) if supervisor is not None else None
         self.inputs = InputChecker(vehicle_params, nmpc_params.inputs)
         self.reset()
@@ -350,9 +352,8 @@ class Nmpc:
         if self._rear_lock <= 0.0:
             return ()
         nz, scale = NS + NU, (1.0 - self._rear_lock) / self._R_R
-        first = math.ceil(self.params.torque_lag / self.params.dt - 1e-9) + 1
         return tuple(scale * w0[k * nz + X.V] * math.cos(w0[k * nz + X.BETA])
-                     if k >= first else -math.inf for k in range(1, self.params.N + 1))
+                     if k >= self._rear_first else -math.inf for k in range(1, self.params.N + 1))
 
     # --- warm start and failures -----------------------------------------------------------
     def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
