@@ -68,6 +68,16 @@ def test_straight_line_acceleration_matches_the_drive_torque(params, model):
     assert x[-1, S.OMEGA_RL] * p.wheels.R_R > V[-1], 'a driven wheel turns faster than it rolls'
 
 
+def test_engine_braking_stops_the_rear_wheels_but_never_reverses_them(params, model):
+    plant = Plant(params, mu=1.0, model=model)
+    plant.reset(V=3.0)
+    T = params.powertrain.T_min
+    x = run(plant, Command(0.0, 0.0, 0.0, T), 2.0)
+    rear = x[:, [S.OMEGA_RL, S.OMEGA_RR]]
+    assert rear.min() > -0.5, 'engine braking turned a rear wheel backwards'
+    assert np.hypot(x[-1, S.VX], x[-1, S.VY]) < 2.0, 'the braked car slows down'
+
+
 def test_left_and_right_turns_are_mirror_images(params, model):
     runs = []
     for sign in (1.0, -1.0):

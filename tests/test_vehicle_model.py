@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from drift_control.params import load_vehicle
-from drift_control.vehicle import (NX, THETA, U, X, VehicleModel, front_axle_course,
-                                   mirror_input, mirror_state, rhs, slips)
+from drift_control.vehicle import (NX, THETA, U, X, VehicleModel, axle_torque,
+                                   front_axle_course, mirror_input, mirror_state, rhs, slips)
 
 
 @pytest.fixture(scope='module')
@@ -149,6 +149,20 @@ def test_coasting_decelerates_and_drive_torque_accelerates(model, vp):
     V_mid = traj[75, X.V]
     m_eff = vp.m + vp.I_wR / vp.R_R ** 2 + vp.I_wF / vp.R_F ** 2
     assert accel == pytest.approx((2000.0 / vp.R_R - vp.c_drag * V_mid ** 2) / m_eff, rel=0.02)
+
+
+def test_engine_braking_resists_the_rear_wheel_and_never_turns_it_backwards(model, vp):
+    # a turning wheel gets the torque exactly: the model's numbers are those without the fade
+    for T in (-1500.0, -0.3, 0.0, 2000.0):
+        assert float(axle_torque(T, 10.5)) == T and float(axle_torque(T, 60.0)) == T
+    assert float(axle_torque(3000.0, 0.0)) == 3000.0, 'drive torque spins up a stopped wheel'
+    assert float(axle_torque(-1500.0, -0.5)) > -5.0, 'no engine braking on a wheel turning back'
+    # a car sliding slowly with its rear locked by engine braking: the wheel stays at ~0
+    x = np.zeros(NX)
+    x[[X.V, X.OMEGA_F, X.OMEGA_R]] = 3.0, 3.0 / vp.R_F, 3.0 / vp.R_R
+    traj = model.simulate(x, np.tile([0.0, vp.limits.T_R_min], (150, 1)), 0.01, substeps=4)
+    assert traj[:, X.OMEGA_R].min() > -0.5, 'engine braking reversed the rear wheel'
+    assert traj[-1, X.V] < 2.0, 'the braked car slows down'
 
 
 def test_free_rolling_front_wheel_keeps_the_vehicle_dynamics(vp):

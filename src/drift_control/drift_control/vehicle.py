@@ -6,7 +6,8 @@ equilibrium solver (symbolic, differentiable), and numeric calls for analysis an
 
 States (``X``): speed V, sideslip beta, yaw rate r, front and rear wheel speeds omega_F, omega_R,
 road-wheel angle delta, and the path states heading error psi, lateral error e_y, arc length s.
-Inputs (``U``): steering rate delta_dot, rear axle drive torque T_R. Runtime parameters
+Inputs (``U``): steering rate delta_dot, rear axle drive torque T_R (a negative one is engine
+braking, which fades as the rear wheel stops: ``axle_torque``). Runtime parameters
 (``THETA``): path curvature K and surface friction mu.
 
 The equations of motion are resolved from the tyre forces, not copied: the paper's Eq. (2) prints
@@ -39,6 +40,7 @@ _SMOOTH_W = 0.01         # width of the smooth max in speed [m/s]
 _LOAD_FLOOR = 100.0      # a lifted wheel keeps this much vertical load [N]
 _FRENET_FLOOR = 0.1      # 1 - e_y K never goes below this (car far inside a tight curve) [-]
 FREE_ROLLING_TAU = 0.05  # time constant of the front wheel speed in 'free_rolling' mode [s]
+COAST_OMEGA = 0.5        # engine braking fades over this rear wheel speed around standstill [rad/s]
 
 
 class AxleForces(NamedTuple):
@@ -54,6 +56,14 @@ class AxleForces(NamedTuple):
     alpha_R: object
     kappa_F: object
     kappa_R: object
+
+
+def axle_torque(T, omega, width=COAST_OMEGA):
+    """The drive torque ``T`` [Nm] at a wheel turning at ``omega`` [rad/s]: a negative one is
+    engine braking, which resists the rotation and fades out before the wheel stops (2 % left
+    at standstill); it never turns the wheel backwards. Exactly ``T`` above 21 ``width``
+    (``tanh`` rounds to 1 there)."""
+    return ca.fmax(T, 0.0) + ca.fmin(T, 0.0) * 0.5 * (1.0 + ca.tanh(omega / width - 2.0))
 
 
 def smooth_max(a, b, w=_SMOOTH_W):
@@ -156,7 +166,7 @@ def rhs(x, u, theta, p: VehicleParams, load_passes: int = 1, front_wheel: str = 
         omega_F_dot = (v_xwF / p.R_F - x[X.OMEGA_F]) / FREE_ROLLING_TAU
     else:
         omega_F_dot = -f.F_xF * p.R_F / p.I_wF
-    omega_R_dot = (u[U.T_R] - f.F_xR * p.R_R) / p.I_wR
+    omega_R_dot = (axle_torque(u[U.T_R], x[X.OMEGA_R]) - f.F_xR * p.R_R) / p.I_wR
 
     # Frenet kinematics, paper Eq. (1); psi is the heading error to the path tangent
     K = theta[THETA.K]

@@ -4,7 +4,8 @@ Body: planar rigid body (vx, vy, r, yaw, x, y) with roll and pitch as lagged qua
 transfer on all four wheels. Four wheel-spin DOF; rear wheels driven through a limited-slip
 differential; per-wheel MF 5.2-style combined-slip tyres (``drift_control.tyre.combined_forces``,
 the shared tyre code, with the plant's own coefficients) behind first-order slip relaxation;
-drive torque lag; a steering system with a rate-limited reference and a torque-limited position
+drive torque lag (a negative drive torque is engine braking: it resists the rear wheels'
+rotation and never turns them backwards); a steering system with a rate-limited reference and a torque-limited position
 loop working against the self-aligning moment of the front tyres; aerodynamic drag, rolling
 resistance, brakes; friction from the road field at each contact patch.
 
@@ -26,7 +27,7 @@ import numpy as np
 from drift_control.compiled import CompiledFunction, build_cached
 from drift_control.params import cache_dir
 from drift_control.tyre import combined_forces
-from drift_control.vehicle import smooth_max
+from drift_control.vehicle import axle_torque, smooth_max
 from drift_sim.params import PlantParams
 from drift_sim.road import N_FIELD, friction
 
@@ -148,15 +149,16 @@ def rhs(x, u, q, p: PlantParams):
     x_dot[S.OMEGA_FL] = -resist[0] / wh.I_wF
     x_dot[S.OMEGA_FR] = -resist[1] / wh.I_wF
     # rear: the carrier (mean speed) carries the driveline inertia; the LSD acts on the difference
-    T = x[S.T_DRIVE]
     w_L, w_R = x[S.OMEGA_RL], x[S.OMEGA_RR]
+    # engine braking (a negative drive torque) resists the carrier's rotation, never reverses it
+    T = axle_torque(x[S.T_DRIVE], 0.5 * (w_L + w_R), wh.omega_eps)
     cap = q[PP.LOCKING] * ca.sqrt(T * T + 1.0) + p.lsd.preload + 1.0
     T_lock = _sat(p.lsd.viscous * (w_L - w_R), cap)
     mean_dot = (T - resist[2] - resist[3]) / (2.0 * wh.I_wR + wh.I_drive)
     diff_dot = (-T_lock - resist[2] + resist[3]) / wh.I_wR
     x_dot[S.OMEGA_RL] = mean_dot + 0.5 * diff_dot
     x_dot[S.OMEGA_RR] = mean_dot - 0.5 * diff_dot
-    x_dot[S.T_DRIVE] = (ca.fmin(ca.fmax(u[UP.T_REQ], pt.T_min), pt.T_max) - T) / pt.tau
+    x_dot[S.T_DRIVE] = (ca.fmin(ca.fmax(u[UP.T_REQ], pt.T_min), pt.T_max) - x[S.T_DRIVE]) / pt.tau
 
     # steering: rate-limited reference, PD position loop saturated at the actuator torque
     delta_cmd = ca.fmin(ca.fmax(u[UP.DELTA_CMD], -st.delta_max), st.delta_max)
