@@ -32,7 +32,7 @@ from drift_control.scenario import control_scenario_names
 from drift_sim.campaign import campaign_jobs, default_config, run_jobs
 from drift_sim.executor import ClusterError, check_address, interrupt, make_executor
 from drift_sim.store import RunStore
-from drift_sim.sweep import ERROR, campaign_summary, format_campaign, parse_seeds
+from drift_sim.sweep import ERROR, campaign_summary, format_campaign, parse_plants, parse_seeds
 
 
 def parser() -> argparse.ArgumentParser:
@@ -43,9 +43,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--vehicle', action='append',
                    help='config/vehicle/<name>.yaml (repeat; default: every vehicle)')
     p.add_argument('--seeds', default='0', help='run seeds, e.g. 0-9 or 0,3 (default 0)')
-    p.add_argument('--plants', type=int, default=0,
-                   help='plant draws 0..N-1 per vehicle from config/sim/populations/ (default '
-                   '0: the nominal plant)')
+    p.add_argument('--plants', default='0',
+                   help='plant draws per vehicle from config/sim/populations/: N for draws '
+                   '0..N-1, or a list of draws, e.g. 25-49 (default 0: the nominal plant)')
     p.add_argument('--plant-seed', type=int, default=0,
                    help='seed of the plant draws (default 0)')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
@@ -72,16 +72,17 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    for name, least in (('plants', 0), ('plant_seed', 0), ('worst', 0), ('jobs', 1)):
+    for name, least in (('plant_seed', 0), ('worst', 0), ('jobs', 1)):
         if getattr(args, name) < least:
             return _fail(f"--{name.replace('_', '-')}: expected an integer >= {least}, "
                          f'got {getattr(args, name)}')
     config = default_config(args.config_dir)
     try:
         seeds = parse_seeds(args.seeds)
+        plants = parse_plants(args.plants)
         scenarios = args.scenario or control_scenario_names(args.config_dir)
         vehicles = args.vehicle or vehicle_names(args.config_dir)
-        jobs = campaign_jobs(scenarios, vehicles, seeds, args.plants, args.set,
+        jobs = campaign_jobs(scenarios, vehicles, seeds, plants, args.set,
                              args.plant_seed, config, args.sensors,
                              args.estimator or ('none' if args.sensors else ''))
         store = RunStore(args.store)
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
         return _fail(f'no runs: no scenario under {args.config_dir}/scenarios')
     todo = sum(1 for job in jobs if job.key not in store)
     header = (f'campaign: {len(jobs)} runs ({len(scenarios)} scenario(s) x {len(vehicles)} '
-              f'vehicle(s) x {max(args.plants, 1)} plant(s) x {len(seeds)} seed(s)); '
+              f'vehicle(s) x {max(len(plants), 1)} plant(s) x {len(seeds)} seed(s)); '
               f'{len(jobs) - todo} already in {args.store}')
     previous = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
     t0 = time.perf_counter()

@@ -18,7 +18,7 @@ from drift_control.params import ParamError, config_dir
 from drift_sim.campaign import Job, campaign_jobs, code_version, config_digest, run_jobs
 from drift_sim.store import RunStore
 from drift_sim.sweep import (ERROR, HELD, LOST, SPUN, TRIPPED, campaign_summary, format_campaign,
-                             wilson_interval)
+                             parse_plants, wilson_interval)
 
 from conftest import REPO, load_script
 
@@ -61,6 +61,16 @@ def test_jobs_go_plant_by_plant_through_every_scenario_and_car_with_distinct_has
     assert nominal[0].key == Job('steady_dry', 'gr86', 4, values={'x': 1.0},
                                  config_digest=digest).key
     assert nominal[0].key != Job('steady_dry', 'gr86', 5, config_digest=digest).key
+
+
+def test_listed_plant_draws_are_those_draws_of_a_larger_campaign():
+    """``--plants 2-3`` runs draws 2 and 3 exactly as ``--plants 4`` does: the same store keys,
+    so a campaign extends (or splits across machines) without running its first draws again."""
+    whole = campaign_jobs(['steady_dry'], ['gr86'], [0], plants=4)
+    part = campaign_jobs(['steady_dry'], ['gr86'], [0], plants=parse_plants('2-3'))
+    assert [j.key for j in part] == [j.key for j in whole[2:]]
+    assert [j.draw for j in part] == [2, 3]
+    assert parse_plants('3') == [0, 1, 2] and parse_plants('0') == [] and parse_plants('5,1') == [1, 5]
 
 
 def test_the_configuration_counts_by_its_values_not_its_text_or_place(tmp_path):
@@ -195,6 +205,8 @@ def broken_population(tmp_path):
     (['--scenario', 'no_such'], "scenario 'no_such'"),
     (['--vehicle', 'no_such'], "vehicle 'no_such'"),
     (['--seeds', '3-1'], 'seeds'),
+    (['--plants', '-3'], "plants: '-3' is not N or N-M"),
+    (['--plants', '9-2'], "plants: '9-2' is not a range of plants >= 0"),
     (['--jobs', '0'], '--jobs: expected an integer >= 1'),
     (['--set', 'plant.body.mass=3'], "unknown key(s) ['mass']"),
     (['--address', f'127.0.0.1:{_free_port()}'], 'cannot reach it'),

@@ -20,6 +20,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -138,7 +139,7 @@ def check_run(scenario: str, vehicle: str, overrides=(), config=None) -> None:
     load_scenario(scenario, overrides, config, vehicle=vehicle)   # with its plant and path
 
 
-def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
+def campaign_jobs(scenarios, vehicles, seeds, plants: int | Sequence[int] = 0, overrides=(),
                   plant_seed: int = 0, config: str | None = None, sensors: str = '',
                   estimator: str = '') -> list[Job]:
     """Every scenario x vehicle x plant x seed; ParamError names bad input.
@@ -148,16 +149,18 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
 
     Parameters
     ----------
-    plants : int
+    plants : int or sequence of int
         Draws ``0 .. plants - 1`` of each vehicle's population
-        (``config/sim/populations/<vehicle>.yaml``); 0: the nominal plant only.
+        (``config/sim/populations/<vehicle>.yaml``), or the draws listed; 0 or none: the
+        nominal plant only.
     overrides : iterable of str
         ``key=value`` for every run (``duration=2``); the draws are relative to the plant they
         leave.
     """
     overrides = tuple(overrides)
-    if plants < 0:
-        raise ParamError(f'plants: expected >= 0, got {plants}')
+    draws = range(plants) if isinstance(plants, int) else sorted(set(plants))
+    if isinstance(plants, int) and plants < 0 or any(d < 0 for d in draws):
+        raise ParamError(f'plants: expected draws >= 0, got {plants}')
     if estimator and not sensors:
         raise ParamError('estimator: needs sensors (the estimator fuses the sensor units)')
     if sensors:
@@ -170,13 +173,13 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int = 0, overrides=(),
     for scenario in scenarios:
         for vehicle in vehicles:
             check_run(scenario, vehicle, overrides, config)
-            if plants == 0:
+            if not draws:
                 for seed in seeds:
                     runs.setdefault((None, seed), []).append(
                         Job(scenario, vehicle, seed, overrides, config=config, **sensed))
                 continue
             population = load_population(vehicle, scenario, overrides, config, sensors=sensors)
-            for index in range(plants):
+            for index in draws:
                 plant = draw(population, index, plant_seed)
                 for seed in seeds:
                     runs.setdefault((index, seed), []).append(

@@ -30,8 +30,9 @@ ROBUST_LOW_MU = ('surface.mu=0.95',) + ROBUST
 ROBUST_HIGH_MU = ('surface.mu=1.05',) + ROBUST
 
 
-def parse_seeds(text: str) -> list[int]:
-    """``'0-4,7,9'`` -> ``[0, 1, 2, 3, 4, 7, 9]`` (sorted, without repeats)."""
+def parse_seeds(text: str, what: str = 'seeds') -> list[int]:
+    """``'0-4,7,9'`` -> ``[0, 1, 2, 3, 4, 7, 9]`` (sorted, without repeats); ``what`` names the
+    option in errors."""
     seeds = set()
     for part in text.split(','):
         part = part.strip()
@@ -41,13 +42,22 @@ def parse_seeds(text: str) -> list[int]:
         try:
             first, last = int(lo), int(hi) if sep else int(lo)
         except ValueError:
-            raise ValueError(f'seeds: {part!r} is not N or N-M') from None
+            raise ValueError(f'{what}: {part!r} is not N or N-M') from None
         if first < 0 or last < first:
-            raise ValueError(f'seeds: {part!r} is not a range of seeds >= 0')
+            raise ValueError(f'{what}: {part!r} is not a range of {what} >= 0')
         seeds.update(range(first, last + 1))
     if not seeds:
-        raise ValueError('seeds: none given')
+        raise ValueError(f'{what}: none given')
     return sorted(seeds)
+
+
+def parse_plants(text: str) -> list[int]:
+    """Plant draws: ``'100'`` -> draws 0 .. 99 (``'0'``: none, the nominal plant); a list of
+    draws as for seeds, ``'25-49'`` or ``'3,7'``, to extend a campaign or split it."""
+    text = text.strip()
+    if text.isdigit():
+        return list(range(int(text)))
+    return parse_seeds(text, 'plants')
 
 
 def run_seed(scenario: str, overrides=(), seed: int | None = None,
