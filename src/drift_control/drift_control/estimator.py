@@ -1,7 +1,8 @@
 """State estimator: the car's sensors fused into the ``VehicleState`` the controller consumes.
 
 An EKF on a kinematic model driven by the IMU (states: body velocity vx, vy at the CoG, heading
-psi, map position X, Y, and the IMU biases of ax, ay and yaw rate), aided by the INS/GNSS unit
+psi, map position X, Y, the IMU biases of ax, ay and yaw rate, and the scale error of the front
+wheels' rolling radius), aided by the INS/GNSS unit
 (speed, sideslip, yaw rate, pose) and the front axle's wheel speeds. Not the single-track model:
 its tyre forces need mu and tyre coefficients that differ from the car's (the plant is not the
 controller's model by design), and a model error in the estimate is what the NMPC's offset-free
@@ -44,7 +45,7 @@ FIELDS = {
     'torque': ('drive_torque',),
 }
 
-E = IntEnum('E', 'VX VY PSI X Y B_AX B_AY B_R', start=0)   # EKF state layout
+E = IntEnum('E', 'VX VY PSI X Y B_AX B_AY B_R S_F', start=0)   # EKF state layout
 NE = len(E)
 
 
@@ -102,6 +103,10 @@ class EstimatorParams:
     ins_slow_std: dict[str, float] = field(default_factory=dict)   # INS channels' slow
     ins_slow_tau: dict[str, float] = field(default_factory=dict)   # (Gauss-Markov) error: its
                                     # std and correlation time [s], in the actual covariance
+    front_radius_std0: float = 0.01     # the front rolling radius's scale error: prior [-] ...
+    front_radius_walk: float = 1e-4     # ... and its drift (pressure, temperature) [1/sqrt(s)]
+    front_wheel_noise_std: float = 0.0  # the rim speed's own noise: the NIS (0: the weight) [m/s]
+    accel_bias_walk_noise: float = 0.0  # the IMU's own offset drift: the NIS (0: the weight's)
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -111,6 +116,13 @@ class EstimatorParams:
             require(getattr(self, name) > 0, f'estimator.{name}', 'must be positive')
         require(self.accel_bias_walk >= 0 and self.gyro_bias_walk >= 0, 'estimator',
                 'bias walks must be >= 0')
+        require(0 < self.front_radius_std0 < 0.2, 'estimator.front_radius_std0',
+                'must be in (0, 0.2)')
+        require(self.front_radius_walk >= 0, 'estimator.front_radius_walk', 'must be >= 0')
+        require(self.accel_bias_walk_noise >= 0, 'estimator.accel_bias_walk_noise',
+                'must be >= 0 (0: accel_bias_walk)')
+        require(self.front_wheel_noise_std >= 0, 'estimator.front_wheel_noise_std',
+                'must be >= 0 (0: front_wheel_std)')
         require(self.jump_gate > self.gate, 'estimator.jump_gate', 'must exceed gate')
         for name in ('persist', 'bias_window', 'frozen_samples', 'stuck_samples'):
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
@@ -247,7 +259,8 @@ class Estimator:
         p = self.p
         self.x: np.ndarray | None = None
         self.P = np.diag([0.1, 0.1, 1e-4, 0.1, 0.1, p.accel_bias_std0 ** 2,
-                          p.accel_bias_std0 ** 2, p.gyro_bias_std0 ** 2])
+                          p.accel_bias_std0 ** 2, p.gyro_bias_std0 ** 2,
+                          p.front_radius_std0 ** 2])
         # the error covariance the filter actually has: its gains, the sensors' own white noise,
         # and after the EKF's states the INS channels' slow errors, which it does not estimate
         slow = list(p.ins_slow_std)
@@ -327,7 +340,8 @@ class Estimator:
 
     def _initialise(self, s: SensorSample) -> None:
         V, beta, _, X, Y, yaw = s.values
-        self.x = np.array([V * math.cos(beta), V * math.sin(beta), yaw, X, Y, 0.0, 0.0, 0.0])
+        self.x = np.array([V * math.cos(beta), V * math.sin(beta), yaw, X, Y, 0.0, 0.0, 0.0,
+                           0.0])
         self.t = self._last_aided = s.stamp
         self._u = self._imu_at(s.stamp)
 
@@ -372,10 +386,12 @@ class Estimator:
         G[E.B_AX:E.B_R + 1] = 0.0
         q = np.diag([p.accel_std ** 2, p.accel_std ** 2, p.gyro_std ** 2])
         Q, Q_act = G @ q @ G.T, G @ self._q_act @ G.T
-        for M in (Q, Q_act):
-            M[E.B_AX, E.B_AX] += p.accel_bias_walk ** 2 * h
-            M[E.B_AY, E.B_AY] += p.accel_bias_walk ** 2 * h
+        for M, accel_walk in ((Q, p.accel_bias_walk),
+                              (Q_act, p.accel_bias_walk_noise or p.accel_bias_walk)):
+            M[E.B_AX, E.B_AX] += accel_walk ** 2 * h
+            M[E.B_AY, E.B_AY] += accel_walk ** 2 * h
             M[E.B_R, E.B_R] += p.gyro_bias_walk ** 2 * h
+            M[E.S_F, E.S_F] += p.front_radius_walk ** 2 * h
         self.x = self._f(x, u, h)
         self.P = F @ self.P @ F.T + Q
         P_act = self.P_act
@@ -504,7 +520,10 @@ class Estimator:
             self._last_aided = s.stamp
 
     def _front_wheel_update(self, s: SensorSample) -> None:
-        """The front wheels' mean rim speed: the front axle's speed along the wheel (rolling)."""
+        """The front wheels' mean rim speed: the front axle's speed along the wheel (rolling),
+        scaled by the error of the rolling radius the car's data gives (``E.S_F``: 0.3 % is
+        3 cm/s at 10 m/s, a bias the INS speed would otherwise fight; learnt while the INS aids,
+        kept through a dropout)."""
         healthy = [i for i in (0, 1) if self.monitors[f'wheels.{FIELDS["wheels"][i]}'].excluded
                    is None]
         if len(healthy) < 2:
@@ -515,11 +534,14 @@ class Estimator:
         x, a = self.x, self.vehicle.a
         r = u[3] - x[E.B_R]
         c, sn = math.cos(delta), math.sin(delta)
-        h = x[E.VX] * c + (x[E.VY] + a * r) * sn
+        along = x[E.VX] * c + (x[E.VY] + a * r) * sn
+        scale = 1.0 + x[E.S_F]
+        h = along * scale
         H = np.zeros(NE)
-        H[E.VX], H[E.VY], H[E.B_R] = c, sn, -a * sn
+        H[E.VX], H[E.VY], H[E.B_R], H[E.S_F] = c * scale, sn * scale, -a * sn * scale, along
         self._scalar_update('wheels.front_speed', omega * self.vehicle.R_F, h, H,
-                            self.p.front_wheel_std ** 2)
+                            self.p.front_wheel_std ** 2,
+                            R_noise=self.p.front_wheel_noise_std ** 2 or None)
 
     def _steer_at(self, t: float) -> float:
         best = self._steer[0][1] if self._steer else 0.0
