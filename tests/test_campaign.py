@@ -70,7 +70,8 @@ def test_listed_plant_draws_are_those_draws_of_a_larger_campaign():
     part = campaign_jobs(['steady_dry'], ['gr86'], [0], plants=parse_plants('2-3'))
     assert [j.key for j in part] == [j.key for j in whole[2:]]
     assert [j.draw for j in part] == [2, 3]
-    assert parse_plants('3') == [0, 1, 2] and parse_plants('0') == [] and parse_plants('5,1') == [1, 5]
+    assert parse_plants('3') == [0, 1, 2] and parse_plants('0') == []
+    assert parse_plants('5,1') == [1, 5]
 
 
 def test_the_configuration_counts_by_its_values_not_its_text_or_place(tmp_path):

@@ -5,9 +5,10 @@ transfer on all four wheels. Four wheel-spin DOF; rear wheels driven through a l
 differential; per-wheel MF 5.2-style combined-slip tyres (``drift_control.tyre.combined_forces``,
 the shared tyre code, with the plant's own coefficients) behind first-order slip relaxation;
 drive torque lag (a negative drive torque is engine braking: it resists the rear wheels'
-rotation and never turns them backwards); a steering system with a rate-limited reference and a torque-limited position
-loop working against the self-aligning moment of the front tyres; aerodynamic drag, rolling
-resistance, brakes; friction from the road field at each contact patch.
+rotation and never turns them backwards); a steering system with a rate-limited reference and a
+torque-limited position loop working against the self-aligning moment of the front tyres;
+aerodynamic drag, rolling resistance, brakes; friction from the road field at each contact
+patch.
 
 ``PlantModel.step`` is ONE casadi Function that integrates ``substeps`` RK4 steps (``mapaccum``),
 so Python runs once per plant call (10 ms), not once per 1 ms step; ``PlantModel.compiled`` is
