@@ -16,6 +16,9 @@ with the IMU samples since (as PX4's EKF2 does). Each scalar innovation is teste
 beyond ``gate`` is rejected, a persistent or biased innovation is an IMU bias step (its bias
 uncertainty is reset), a signal repeating itself is frozen, a wheel reading zero under a
 moving car is stuck; each is named in ``events`` and the channel is left out until it recovers.
+An accelerometer sample that jumps opens the hypothesis of an offset step, which the INS and
+wheel innovations after it confirm or dismiss (a sequential test on the error such a step would
+leave the filter), so a step is named as soon as the aiding sensors can tell it from the car.
 
 Who owns what: this estimator owns the measured state (sensor noise, latency, sensor biases,
 sensor faults) and never uses the controller's model; the NMPC's disturbance ``d``
@@ -107,6 +110,13 @@ class EstimatorParams:
     front_radius_walk: float = 1e-4     # ... and its drift (pressure, temperature) [1/sqrt(s)]
     front_wheel_noise_std: float = 0.0  # the rim speed's own noise: the NIS (0: the weight) [m/s]
     accel_bias_walk_noise: float = 0.0  # the IMU's own offset drift: the NIS (0: the weight's)
+    roll_gradient: float = 0.0  # the body's roll per lateral acceleration: the IMU's lateral
+                                # channel reads a_y + g sin(roll) [rad s^2/m] (0: not modelled)
+    accel_jump: float = 0.0     # an IMU acceleration moving this much in one sample opens a
+                                # bias-step hypothesis for the INS to confirm (0: off) [m/s^2]
+    step_accept: float = 9.2    # ... its log-likelihood ratio accepting it (Wald's SPRT) [-]
+    step_dismiss: float = 4.6   # ... and the negative one dismissing it [-]
+    step_span: float = 0.3      # ... undecided this long after the jump: dismissed [s]
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -124,6 +134,8 @@ class EstimatorParams:
         require(self.front_wheel_noise_std >= 0, 'estimator.front_wheel_noise_std',
                 'must be >= 0 (0: front_wheel_std)')
         require(self.jump_gate > self.gate, 'estimator.jump_gate', 'must exceed gate')
+        for name in ('roll_gradient', 'accel_jump', 'step_accept', 'step_dismiss', 'step_span'):
+            require(getattr(self, name) >= 0, f'estimator.{name}', 'must be >= 0')
         for name in ('persist', 'bias_window', 'frozen_samples', 'stuck_samples'):
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
         require(self.accel_noise_std >= 0 and self.gyro_noise_std >= 0, 'estimator',
@@ -194,6 +206,29 @@ class _Monitor:
             self.window.clear()
             return 'bias'
         return 'accept'
+
+
+class _StepHypothesis:
+    """'The accelerometer's offset stepped by ``delta`` at ``onset``': the IMU sample jumped
+    that much, which the car can do too. Tested on the INS and wheel innovations after it by a
+    sequential probability ratio test (Wald): a bias step leaves the filter an error that grows
+    as its signature ``s`` (the filter's error per unit of step, carried through its own
+    prediction and updates: Willsky and Jones' jump detection); the car's own motion leaves
+    none."""
+
+    def __init__(self, index: int, onset: float, delta: float):
+        self.index, self.onset, self.delta = index, onset, delta
+        self.s: np.ndarray | None = None   # None until the EKF has passed the onset
+        self.llr = 0.0
+
+    def start(self) -> None:
+        self.s = np.zeros(NE)
+        self.s[self.index] = -1.0   # the filter's offset is now the step short of the IMU's
+
+    def evidence(self, nu: float, H: np.ndarray, S: float) -> None:
+        """One innovation ``nu`` of variance ``S`` on measurement row ``H``."""
+        rho = -float(H @ self.s) * self.delta   # its mean, were the step there
+        self.llr += rho * (nu - 0.5 * rho) / S
 
 
 class _RateFilter:
@@ -285,6 +320,7 @@ class Estimator:
         self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p) for u in FIELDS for f in FIELDS[u]}
         self.monitors['wheels.front_speed'] = _Monitor('wheels.front_speed', p)
         self._stuck = [0] * 4
+        self._steps: list[_StepHypothesis] = []
         self.events: list[FaultEvent] = []
         self._now = 0.0
         self._last_aided = -math.inf
@@ -304,6 +340,7 @@ class Estimator:
         for s in sorted(samples, key=lambda s: s.unit != 'imu'):   # the IMU first: it drives
             self._arrived[s.unit] = now
             if s.unit == 'imu':
+                self._open_steps(s)
                 self._imu.append((s.stamp, *s.values))
                 if self.x is not None:   # bias-corrected with the newest gyro bias
                     self._scalar(self.yaw_rate, 'imu.r', s.stamp, s.values[2] - self.x[E.B_R])
@@ -353,13 +390,27 @@ class Estimator:
                 best = sample
         return best
 
+    def _lateral(self, reading: float) -> tuple[float, float]:
+        """The lateral acceleration a_y behind an offset-free lateral reading
+        ``a_y + g sin(k a_y)`` (the rolled body's sensor sees gravity; k the roll gradient), and
+        d a_y / d reading. Two Newton steps from ``reading / (1 + g k)``: ~1e-9 m/s^2 at 1 g."""
+        g = self.vehicle.g
+        gk = g * self.p.roll_gradient
+        if not gk:
+            return reading, 1.0
+        k = self.p.roll_gradient
+        a = reading / (1.0 + gk)
+        for _ in range(2):
+            a -= (a + g * math.sin(k * a) - reading) / (1.0 + gk * math.cos(k * a))
+        return a, 1.0 / (1.0 + gk * math.cos(k * a))
+
     def _f(self, x, u, h):
         """Kinematic model over ``h`` seconds: the IMU's accelerations and yaw rate drive it."""
         _, ax, ay, r_m = u
         r = r_m - x[E.B_R]
         out = x.copy()
         out[E.VX] += h * (ax - x[E.B_AX] + r * x[E.VY])
-        out[E.VY] += h * (ay - x[E.B_AY] - r * x[E.VX])
+        out[E.VY] += h * (self._lateral(ay - x[E.B_AY])[0] - r * x[E.VX])
         out[E.PSI] += h * r
         # the pose on the mean of the step's start and end velocities in the world (trapezoid):
         # Euler's start-of-step heading puts a drifting car ~h^2 V r / 2 inside its arc per step
@@ -377,7 +428,8 @@ class Estimator:
         c, s = math.cos(x[E.PSI]), math.sin(x[E.PSI])
         F = np.eye(NE)
         F[E.VX, E.VY], F[E.VX, E.B_AX], F[E.VX, E.B_R] = h * r, -h, -h * x[E.VY]
-        F[E.VY, E.VX], F[E.VY, E.B_AY], F[E.VY, E.B_R] = -h * r, -h, h * x[E.VX]
+        gain = self._lateral(u[2] - x[E.B_AY])[1]
+        F[E.VY, E.VX], F[E.VY, E.B_AY], F[E.VY, E.B_R] = -h * r, -h * gain, h * x[E.VX]
         F[E.PSI, E.B_R] = -h
         F[E.X, E.VX], F[E.X, E.VY], F[E.X, E.PSI] = h * c, -h * s, -h * (x[E.VX] * s + x[E.VY] * c)
         F[E.Y, E.VX], F[E.Y, E.VY], F[E.Y, E.PSI] = h * s, h * c, h * (x[E.VX] * c - x[E.VY] * s)
@@ -394,6 +446,9 @@ class Estimator:
             M[E.S_F, E.S_F] += p.front_radius_walk ** 2 * h
         self.x = self._f(x, u, h)
         self.P = F @ self.P @ F.T + Q
+        for hyp in self._steps:
+            if hyp.s is not None:
+                hyp.s = F @ hyp.s
         P_act = self.P_act
         if self._slow:   # the slow errors decay as first-order Gauss-Markov processes
             phi = np.exp(-h / self._slow_tau)
@@ -409,6 +464,9 @@ class Estimator:
             if self.t + 1e-9 < sample[0] <= t + 1e-9:
                 self._propagate(sample[0] - self.t)
                 self.t, self._u = sample[0], sample
+                for hyp in self._steps:
+                    if hyp.s is None and abs(hyp.onset - sample[0]) < 1e-9:
+                        hyp.start()
         self._propagate(t - self.t)
         self.t = max(self.t, t)
 
@@ -436,10 +494,14 @@ class Estimator:
         PH, PH_act = self.P @ H, self.P_act @ H_act
         HPH = float(H @ PH)
         S, S_test, S_act = HPH + R, HPH + R_test, float(H_act @ PH_act) + R_noise
+        steps = [hyp for hyp in self._steps if hyp.s is not None]
+        for hyp in steps:
+            hyp.evidence(nu, H, S_act)
         verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t, nu * nu / S_act)
         if verdict in ('reject', 'jump'):
             if verdict == 'jump':
                 self._event(name, 'jump')
+            self._decide_steps()
             return verdict
         pose = name in ('ins.x', 'ins.y', 'ins.yaw')   # a GNSS error is slow: no bias test
         if verdict == 'step' or (verdict == 'bias' and not pose):
@@ -456,7 +518,50 @@ class Estimator:
         K_act[:NE] = K
         KPH = np.outer(K_act, PH_act)
         self.P_act = self.P_act - KPH - KPH.T + S_act * np.outer(K_act, K_act)
+        for hyp in steps:   # the update corrects part of the error a step would have left
+            hyp.s = hyp.s - K * float(H @ hyp.s)
+        self._decide_steps()
         return verdict
+
+    def _open_steps(self, s: SensorSample) -> None:
+        """An accelerometer sample ``accel_jump`` or more from the one before opens a bias-step
+        hypothesis (the car rarely moves its acceleration that far in 10 ms; a step does it at
+        once)."""
+        if not self.p.accel_jump or not self._imu or self.x is None:
+            return
+        last = self._imu[-1]
+        if not 0.0 < s.stamp - last[0] <= 0.02 + 1e-9:
+            return
+        for index, new, old in ((E.B_AX, s.values[0], last[1]), (E.B_AY, s.values[1], last[2])):
+            if abs(new - old) >= self.p.accel_jump:
+                self._steps.append(_StepHypothesis(index, s.stamp, new - old))
+
+    def _decide_steps(self) -> None:
+        """Accept a bias-step hypothesis whose evidence is enough (the state corrected by the
+        error its signature says it left), dismiss one the innovations contradict or that stays
+        undecided past ``step_span``."""
+        p, keep = self.p, []
+        for hyp in self._steps:
+            if hyp.s is not None and hyp.llr >= p.step_accept:
+                self._accept_step(hyp)
+                return   # the others were tested on the errors this one explains
+            if hyp.llr > -p.step_dismiss and self.t - hyp.onset < p.step_span:
+                keep.append(hyp)
+        self._steps = keep
+
+    def _accept_step(self, hyp: _StepHypothesis) -> None:
+        """The accelerometer offset stepped: take the error it left out of the state, and give
+        the offset the uncertainty of a measured jump (the sample's noise, twice)."""
+        self.x = self.x - hyp.delta * hyp.s
+        var = 2.0 * (self.p.accel_noise_std or self.p.accel_std) ** 2
+        for P in (self.P, self.P_act):
+            P[hyp.index, :] = 0.0
+            P[:, hyp.index] = 0.0
+            P[hyp.index, hyp.index] = var
+        for name in ('ins.V', 'ins.beta', 'wheels.front_speed'):   # their windows hold it
+            self.monitors[name].window.clear()
+        self._steps = []
+        self._name_once('imu.ax/ay', 'bias step')
 
     def _blame(self, name: str, verdict: str) -> None:
         """A persistent or biased innovation: the IMU bias behind it changed (a step), or, for
@@ -479,9 +584,13 @@ class Estimator:
             if channel == 'imu.ax/ay':   # the velocity integrated the step until it was seen
                 for i in (E.VX, E.VY):
                     P[i, i] += var * span * span
-        reason = 'bias step' if channel.startswith('imu') else f'{verdict} accepted'
+        self._name_once(channel,
+                        'bias step' if channel.startswith('imu') else f'{verdict} accepted')
+
+    def _name_once(self, channel: str, reason: str) -> None:
+        """One fault, one name: not once per window or test."""
         if not any(e.channel == channel and e.reason == reason and self._now - e.t < 1.0
-                   for e in self.events[-8:]):   # one fault, one name: not once per window
+                   for e in self.events[-8:]):
             self._event(channel, reason)
 
     def _ins_update(self, s: SensorSample) -> None:
@@ -622,7 +731,7 @@ class Estimator:
                 t, u = sample[0], sample
         x = self._f(x, u, max(0.0, now - t))
         vx, vy = x[E.VX], x[E.VY]
-        ax, ay = u[1] - x[E.B_AX], u[2] - x[E.B_AY]
+        ax, ay = u[1] - x[E.B_AX], self._lateral(u[2] - x[E.B_AY])[0]
         wheels = [f.at(now) if f.x is not None else 0.0 for f in self.wheels]
         for i, j in ((0, 1), (1, 0), (2, 3), (3, 2)):   # a faulty wheel: its axle partner's
             if self.monitors[f'wheels.{FIELDS["wheels"][i]}'].excluded is not None:
@@ -743,13 +852,16 @@ def build_estimator(kind: str, vehicle: VehicleParams, params_file, overrides=()
     return Estimator(vehicle, load_estimator_params(params_file, overrides))
 
 
+ABSURD_SPEED, ABSURD_RATE = 1e3, 1e2   # [m/s], [rad/s]: no car; the filter integrated garbage
+
+
 class FrameStepper:
     """An estimator fed frame by frame as they arrive over a network: one step per frame of
     samples that arrived together. A frame offered again (the same arrival time: a simulator
     waiting for its controller repeats its first one) gets the same state without a step; a
     clock that steps back (a restarted simulator) starts the estimator over, and so does a
-    step that fails or leaves a non-finite state (absurd samples the IMU integrates: the
-    filter would never recover), named in ``failure``."""
+    step that fails or leaves a non-finite or absurd state (absurd samples the IMU integrates:
+    the filter would never recover), named in ``failure``."""
 
     def __init__(self, estimator):
         self.estimator = estimator
@@ -772,6 +884,9 @@ class FrameStepper:
         if state is not None and not all(math.isfinite(v) for v in (
                 state.V, state.beta, state.r, state.x, state.y, state.yaw)):
             return self._restart(f'non-finite state at t = {now:.3f} s')
+        if state is not None and not (abs(state.V) < ABSURD_SPEED and abs(state.r) < ABSURD_RATE):
+            return self._restart(f'absurd state (V {state.V:.3g} m/s, r {state.r:.3g} rad/s) '
+                                 f'at t = {now:.3f} s')
         self.state = state or self.state
         return self.state
 
