@@ -117,6 +117,8 @@ class EstimatorParams:
     step_accept: float = 9.2    # ... its log-likelihood ratio accepting it (Wald's SPRT) [-]
     step_dismiss: float = 4.6   # ... and the negative one dismissing it [-]
     step_span: float = 0.3      # ... undecided this long after the jump: dismissed [s]
+    noise_learning_time: float = 0.0    # the fault tests learn how much noisier than its
+                                # figures each channel is over this long (0: never) [s]
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -134,7 +136,8 @@ class EstimatorParams:
         require(self.front_wheel_noise_std >= 0, 'estimator.front_wheel_noise_std',
                 'must be >= 0 (0: front_wheel_std)')
         require(self.jump_gate > self.gate, 'estimator.jump_gate', 'must exceed gate')
-        for name in ('roll_gradient', 'accel_jump', 'step_accept', 'step_dismiss', 'step_span'):
+        for name in ('roll_gradient', 'accel_jump', 'step_accept', 'step_dismiss', 'step_span',
+                     'noise_learning_time'):
             require(getattr(self, name) >= 0, f'estimator.{name}', 'must be >= 0')
         for name in ('persist', 'bias_window', 'frozen_samples', 'stuck_samples'):
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
@@ -177,6 +180,9 @@ class _Monitor:
         self.span = 0.0   # the time a step or bias took to be seen [s]
         self.excluded: str | None = None    # the reason it is left out, or None
         self.nis: list[float] = []
+        # the innovations' mean square against what the tests assume (a unit noisier than its
+        # figures: > 1), learnt over ``noise_learning_time``; its running count and last stamp
+        self.noise_ratio, self.noise_ratio_act, self._seen, self._stamp = 1.0, 1.0, 0, None
 
     def frozen(self, value: float) -> bool:
         """Feed the raw value; True while it has repeated ``frozen_samples`` times."""
@@ -187,8 +193,16 @@ class _Monitor:
     def judge(self, nis: float, normalised: float, stamp: float,
               consistency: float | None = None) -> str:
         """'accept', 'reject', 'jump', 'step' or 'bias' for one innovation of a sample
-        stamped ``stamp``; ``consistency`` is the NIS recorded (default ``nis``)."""
-        self.nis.append(nis if consistency is None else consistency)
+        stamped ``stamp``; ``consistency`` is the NIS recorded (default ``nis``).
+
+        The tests take the channel's noise as at least what its figures say, and more where its
+        innovations have shown more (``noise_scale``): a unit twice as noisy as its data sheet
+        would otherwise have its every tenth window named a bias."""
+        consistency = nis if consistency is None else consistency
+        self.nis.append(consistency)
+        scale = self.noise_scale
+        self._learn(nis, consistency, stamp)
+        nis, normalised = nis / scale, normalised / math.sqrt(scale)
         self.window.append(normalised)   # a rejected sample is evidence of a bias too
         self.stamps.append(stamp)
         if nis > self.p.gate:
@@ -206,6 +220,30 @@ class _Monitor:
             self.window.clear()
             return 'bias'
         return 'accept'
+
+    @property
+    def noise_scale(self) -> float:
+        """What the tests multiply the channel's innovation variance by: >= 1."""
+        return max(1.0, self.noise_ratio)
+
+    @property
+    def noise_scale_act(self) -> float:
+        """The same for the innovation variance of the actual covariance (the NIS's)."""
+        return max(1.0, self.noise_ratio_act)
+
+    def _learn(self, nis: float, consistency: float, stamp: float) -> None:
+        """Running mean of the NIS (each sample's capped at the gate: an outlier or a fault
+        moves it little), over all samples at first, then over ``noise_learning_time``."""
+        tau = self.p.noise_learning_time
+        if not tau:
+            return
+        self._seen += 1
+        dt = stamp - self._stamp if self._stamp is not None else 0.0
+        self._stamp = stamp
+        a = max(1.0 / self._seen, min(1.0, max(dt, 0.0) / tau))
+        gate = self.p.gate
+        self.noise_ratio += a * (min(nis, gate) - self.noise_ratio)
+        self.noise_ratio_act += a * (min(consistency, gate) - self.noise_ratio_act)
 
 
 class _StepHypothesis:
@@ -496,7 +534,7 @@ class Estimator:
         S, S_test, S_act = HPH + R, HPH + R_test, float(H_act @ PH_act) + R_noise
         steps = [hyp for hyp in self._steps if hyp.s is not None]
         for hyp in steps:
-            hyp.evidence(nu, H, S_act)
+            hyp.evidence(nu, H, S_act * mon.noise_scale_act)
         verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t, nu * nu / S_act)
         if verdict in ('reject', 'jump'):
             if verdict == 'jump':
