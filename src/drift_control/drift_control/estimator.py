@@ -568,7 +568,7 @@ class Estimator:
         if not self.p.accel_jump or not self._imu or self.x is None:
             return
         last = self._imu[-1]
-        if not 0.0 < s.stamp - last[0] <= 0.02 + 1e-9:
+        if not 0.0 < s.stamp - last[0] <= 0.02 + 1e-9:   # next sample, or one lost between
             return
         for index, new, old in ((E.B_AX, s.values[0], last[1]), (E.B_AY, s.values[1], last[2])):
             if abs(new - old) >= self.p.accel_jump:
