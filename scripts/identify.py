@@ -120,6 +120,8 @@ def main(argv=None) -> int:
             raw[block]['_source'] = (f"[identified] {', '.join(fitted)} fitted to {bag.name} "
                                      '(scripts/identify.py); the rest as the data sheet: '
                                      + str(raw[block].get('_source', '')).strip())
+    if summary['powertrain'] is not None:   # the car's own lag, for the NMPC (VehicleParams)
+        raw['torque_lag'] = summary['powertrain']['nmpc_torque_lag_s']
     raw['_identified'] = {k: summary[k] for k in ('bag', 'scenario', 'seed', 'surface',
                                                    'date', 'log_s', 'parameters', 'held_out',
                                                    'powertrain')}
@@ -181,8 +183,8 @@ def _summary(bag, info, args, surface, mu, log, fit, lag, pred_fit, pred_prior,
             'delay_s': round(lag.delay, 3), 'tau_s': round(lag.tau, 4),
             'tau_ci95_s': float(f'{lag.tau_ci95:.2g}'), 'rms_Nm': round(lag.rms, 1),
             'nmpc_torque_lag_s': round(lag.torque_lag, 3),
-            'note': 'request to measured torque (includes the signal delay); set nmpc.torque_lag '
-                    '(config/nmpc.yaml) to delay + tau'},
+            'note': 'request to measured torque (includes the signal delay): delay + tau, '
+                    'written as the vehicle\'s torque_lag (the NMPC\'s lag for this car)'},
     }
 
 
@@ -216,7 +218,7 @@ def _markdown(s: dict, out: Path) -> str:
     pt = s['powertrain']
     lines += ['', 'Powertrain: no drive torque requests in the bag, not identified.' if pt is None
               else f"Powertrain: delay {pt['delay_s'] * 1000:.0f} ms + lag "
-              f"{pt['tau_s'] * 1000:.0f} ms (+-{pt['tau_ci95_s'] * 1000:.1f}), RMS {pt['rms_Nm']:.0f} Nm: nmpc.torque_lag "
+              f"{pt['tau_s'] * 1000:.0f} ms (+-{pt['tau_ci95_s'] * 1000:.1f}), RMS {pt['rms_Nm']:.0f} Nm: torque_lag "
               f"{pt['nmpc_torque_lag_s']:.3f} s ({pt['note']}).", '']
     return '\n'.join(lines)
 

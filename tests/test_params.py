@@ -29,6 +29,8 @@ def test_shipped_vehicle_and_surfaces_load():
     (lambda r: r.update(m=-5.0), 'vehicle.m: must be positive'),
     (lambda r: r['limits'].update(T_R_min=9000.0), 'T_R_min must be below T_R_max'),
     (lambda r: r.update(a=float('nan')), 'a: must be finite'),
+    (lambda r: r.update(torque_lag=-0.1), 'vehicle.torque_lag: must be >= 0'),
+    (lambda r: r.update(torque_lag='slow'), 'torque_lag: expected a number'),
 ])
 def test_bad_vehicle_file_names_the_key(raw, mutate, message):
     bad = copy.deepcopy(raw)
@@ -53,6 +55,21 @@ def test_parameter_hash_tracks_values(raw):
     b = from_dict(VehicleParams, raw, 'vehicle')
     assert params_hash(a) == params_hash(load_vehicle())
     assert params_hash(a) != params_hash(b)
+    raw['torque_lag'] = 0.14   # an identified car's own powertrain lag is part of its file
+    assert from_dict(VehicleParams, raw, 'vehicle').torque_lag == 0.14
+    assert params_hash(from_dict(VehicleParams, raw, 'vehicle')) != params_hash(b)
+
+
+def test_a_vehicle_without_its_own_lag_keeps_the_nmpc_one_and_its_map():
+    from drift_control.ocp import NmpcParams, for_vehicle
+    vp = load_vehicle()
+    assert vp.torque_lag is None
+    assert for_vehicle(NmpcParams(torque_lag=0.11), vp).torque_lag == 0.11
+    own = copy.deepcopy(vp.__dict__)
+    car = VehicleParams(**{**own, 'torque_lag': 0.16})
+    assert for_vehicle(NmpcParams(torque_lag=0.11), car).torque_lag == 0.16
+    # an unset optional field is not in the hash: the shipped maps stay valid
+    assert params_hash(vp) == params_hash(VehicleParams(**{**own, 'torque_lag': None}))
 
 
 @pytest.mark.parametrize('text, value', [('5e-05', 5e-05), ('-2.5E+2', -250.0), ('1.5e3', 1500.0),

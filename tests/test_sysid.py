@@ -244,6 +244,7 @@ def test_identify_script_writes_a_vehicle_that_loads_and_a_report(tmp_path, full
     import yaml
     record = yaml.safe_load(out.read_text())['_identified']
     assert record['bag'].endswith('bag') and 'rear_tyre.pDy1' in record['parameters']
+    assert car.torque_lag == record['powertrain']['nmpc_torque_lag_s']   # the NMPC's, this car
     assert record['held_out']['identified']['rms_beta_deg'] < \
         record['held_out']['data_sheet']['rms_beta_deg']
     for name in ('report.md', 'fit.json', 'predictions.png', 'tyres.png'):

@@ -15,7 +15,7 @@ import os
 from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 
-from drift_control.ocp import NmpcParams, load_nmpc_params
+from drift_control.ocp import NmpcParams, for_vehicle, load_nmpc_params
 from drift_control.params import (ParamError, Surface, VehicleParams, config_dir, load_defaults,
                                   load_surface, load_vehicle, vehicle_file)
 from drift_control.path import Path, load_path_file
@@ -165,7 +165,7 @@ def load_setup(config: str | os.PathLike | None = None, scenario: str = '',
     vparams = load_vehicle(vfile)
     surf = load_surface(spec.surface.name if spec else (surface or 'dry'),
                         config / 'vehicle' / 'surfaces.yaml')
-    nmpc = load_nmpc_params(config / 'nmpc.yaml')
+    nmpc = for_vehicle(load_nmpc_params(config / 'nmpc.yaml'), vparams)   # the car's own lag
     reference = load_reference_params(config / 'reference.yaml')
     supervisor = load_supervisor_params(config / 'supervisor.yaml')
     check_horizon_spacing(reference, nmpc.dt)

@@ -20,7 +20,8 @@ from enum import IntEnum
 import numpy as np
 
 from drift_control.feasibility import equilibrium_problem
-from drift_control.ocp import NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp
+from drift_control.ocp import (NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp,
+                              for_vehicle)
 from drift_control.ocp_solvers import make_solver, period_function
 from drift_control.pacing import PeriodGate
 from drift_control.params import VehicleParams
@@ -96,6 +97,7 @@ class Nmpc:
                  supervisor: SupervisorParams | None = None):
         if mode not in (Mode.FULL, Mode.TORQUE_ONLY):
             raise ValueError(f'mode must be FULL or TORQUE_ONLY, got {mode!r}')
+        nmpc_params = for_vehicle(nmpc_params, vehicle_params)
         self.params, self.mode, self.mu = nmpc_params, Mode(mode), float(mu)
         self.ocp = Ocp(vehicle_params, nmpc_params)
         self.bounds = self.ocp.bounds

@@ -20,7 +20,7 @@ squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the res
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal, NamedTuple
 
@@ -195,6 +195,14 @@ def load_nmpc_params(path=None) -> NmpcParams:
     return from_dict(NmpcParams, load_yaml(path), path.stem)
 
 
+def for_vehicle(params: NmpcParams, vehicle: VehicleParams) -> NmpcParams:
+    """``params`` with the car's own powertrain lag where its file gives one (an identified
+    car's ``torque_lag``); else ``nmpc.torque_lag`` stands."""
+    if vehicle.torque_lag is None or vehicle.torque_lag == params.torque_lag:
+        return params
+    return replace(params, torque_lag=vehicle.torque_lag)
+
+
 class Bounds(NamedTuple):
     """Effective actuator bounds: the tighter of vehicle and NMPC limits."""
 
@@ -233,6 +241,7 @@ class Ocp:
     """
 
     def __init__(self, vehicle: VehicleParams, params: NmpcParams):
+        params = for_vehicle(params, vehicle)
         self.vehicle, self.params = vehicle, params
         self.bounds = effective_bounds(vehicle, params)
         N, nz = params.N, NS + NU
@@ -394,5 +403,5 @@ class Ocp:
 
 
 __all__ = ['Bounds', 'CostScales', 'NmpcLimits', 'NmpcParams', 'Ocp', 'SolverParams',
-           'effective_bounds', 'load_nmpc_params', 'NREF', 'NS', 'NXO', 'S_T_ACT',
+           'effective_bounds', 'for_vehicle', 'load_nmpc_params', 'NREF', 'NS', 'NXO', 'S_T_ACT',
            'S_T_LAST']

@@ -11,6 +11,7 @@ import json
 import math
 import os
 import re
+import types
 import typing
 from dataclasses import MISSING, asdict, dataclass, fields, is_dataclass
 from pathlib import Path
@@ -127,6 +128,11 @@ def from_dict(cls, raw: Any, where: str):
 
 def _convert(hint, value, where: str):
     origin = typing.get_origin(hint)
+    if origin in (types.UnionType, typing.Union):   # an optional field: ``float | None``
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if value is None and len(args) < len(typing.get_args(hint)):
+            return None
+        return _convert(args[0], value, where)
     if is_dataclass(hint):
         return from_dict(hint, value, where)
     if hint is float:
@@ -173,8 +179,12 @@ def require(condition: bool, where: str, message: str) -> None:
 
 
 def params_hash(*objs) -> str:
-    """A stable short hash of parameter dataclasses (to tie a map file to the model it came from)."""
-    text = json.dumps([asdict(o) for o in objs], sort_keys=True)
+    """A stable short hash of parameter dataclasses (to tie a map file to the model it came from).
+
+    Optional fields left unset (None) are not part of it: adding one keeps the hashes of the
+    files that do not use it."""
+    text = json.dumps([{k: v for k, v in asdict(o).items() if v is not None} for o in objs],
+                      sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -329,12 +339,16 @@ class VehicleParams:
     limits: ActuatorLimits
     front_tyre: FrontTyreParams
     rear_tyre: CombinedTyreParams
+    torque_lag: float | None = None   # this car's request -> wheel torque lag, delay included
+                                      # [s] (identified); None: the NMPC's nmpc.torque_lag
 
     def __post_init__(self):
         for name in ('m', 'L', 'h', 'I_z', 'g', 'R_F', 'R_R', 'I_wF', 'I_wR', 'v_eps'):
             require(getattr(self, name) > 0, f'vehicle.{name}', 'must be positive')
         require(0 < self.a < self.L, 'vehicle.a', f'must lie between 0 and L={self.L}')
         require(self.c_drag >= 0, 'vehicle.c_drag', 'must be >= 0')
+        require(self.torque_lag is None or self.torque_lag >= 0, 'vehicle.torque_lag',
+                'must be >= 0 (or absent: the NMPC\'s nmpc.torque_lag)')
 
     @property
     def b(self) -> float:
