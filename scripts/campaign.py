@@ -56,6 +56,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument('--estimator', default='',
                    help='with --sensors: fuse them (ekf) or pass the newest samples (none; '
                    'the default with --sensors)')
+    p.add_argument('--identify', action='store_true',
+                   help='drive each plant through the identification manoeuvre first and run '
+                   'the controller on the model identified from its log (docs/sysid.md), as a '
+                   'team does with its car, instead of the data sheet')
     p.add_argument('--config-dir', default=str(config_dir()))
     p.add_argument('--store', required=True,
                    help='JSON lines file of finished runs; read first, appended to')
@@ -84,7 +88,7 @@ def main(argv=None) -> int:
         vehicles = args.vehicle or vehicle_names(args.config_dir)
         jobs = campaign_jobs(scenarios, vehicles, seeds, plants, args.set,
                              args.plant_seed, config, args.sensors,
-                             args.estimator or ('none' if args.sensors else ''))
+                             args.estimator or ('none' if args.sensors else ''), args.identify)
         store = RunStore(args.store)
         if args.address:
             check_address(args.address)

@@ -21,7 +21,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from drift_control.estimator import ESTIMATORS
@@ -51,6 +51,8 @@ class Job:
     sensors: str = ''                 # the car's sensor units ('realistic'); '': plant's noise
     estimator: str = ''               # with sensors: 'ekf' or 'none'
     sensor_set: tuple[str, ...] = ()  # with sensors: the draw's sensor overrides
+    identify: bool = False            # the controller's model identified from this plant's own
+                                      # log first (``drift_sim.identified``): not the data sheet
 
     @property
     def key(self) -> str:
@@ -61,6 +63,8 @@ class Job:
                   self.plant_seed, self.config_digest]
         if self.sensors:
             fields += [self.sensors, self.estimator, list(self.sensor_set)]
+        if self.identify:
+            fields += ['identify']
         return hashlib.sha256(json.dumps(fields).encode()).hexdigest()[:16]
 
     def replay_command(self) -> str:
@@ -85,7 +89,8 @@ class Job:
                 'config': self.config, 'config_digest': self.config_digest, 'code': self.code,
                 'replay': self.replay_command(),
                 **({'sensors': self.sensors, 'estimator': self.estimator,
-                    'sensor_set': list(self.sensor_set)} if self.sensors else {})}
+                    'sensor_set': list(self.sensor_set)} if self.sensors else {}),
+                **({'identify': True} if self.identify else {})}
 
 
 def config_digest(config=None) -> str:
@@ -141,7 +146,7 @@ def check_run(scenario: str, vehicle: str, overrides=(), config=None) -> None:
 
 def campaign_jobs(scenarios, vehicles, seeds, plants: int | Sequence[int] = 0, overrides=(),
                   plant_seed: int = 0, config: str | None = None, sensors: str = '',
-                  estimator: str = '') -> list[Job]:
+                  estimator: str = '', identify: bool = False) -> list[Job]:
     """Every scenario x vehicle x plant x seed; ParamError names bad input.
 
     Ordered plant by plant (then seed), each with every scenario and vehicle: a campaign
@@ -156,6 +161,8 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int | Sequence[int] = 0, o
     overrides : iterable of str
         ``key=value`` for every run (``duration=2``); the draws are relative to the plant they
         leave.
+    identify : bool
+        Each plant's controller model identified from its own log (``drift_sim.identified``).
     """
     overrides = tuple(overrides)
     draws = range(plants) if isinstance(plants, int) else sorted(set(plants))
@@ -168,7 +175,7 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int | Sequence[int] = 0, o
         require(estimator in ESTIMATORS, 'estimator',
                 f'{estimator!r} is not one of {list(ESTIMATORS)}')
     sensed = {'sensors': sensors, 'estimator': estimator, 'config_digest': config_digest(config),
-              'code': code_version()}
+              'code': code_version(), 'identify': identify}
     runs = {}   # (draw, seed) -> the jobs of every scenario and vehicle
     for scenario in scenarios:
         for vehicle in vehicles:
@@ -190,11 +197,23 @@ def campaign_jobs(scenarios, vehicles, seeds, plants: int | Sequence[int] = 0, o
 
 
 def run_job(job: Job) -> dict:
-    """Run one job in this process: its store row (``outcome`` is drift_sim.sweep's)."""
-    metrics, wall = run_seed(job.scenario, job.overrides, job.seed, job.config,
-                             vehicle=job.vehicle, sensors=job.sensors, estimator=job.estimator,
+    """Run one job in this process: its store row (``outcome`` is drift_sim.sweep's).
+
+    With ``identify`` the run's controller drives the identified copy of the car (prepared on
+    first use; its config directory and name are in the row, and the replay command uses them).
+    """
+    config, vehicle, extra = job.config, job.vehicle, {}
+    if job.identify:
+        from drift_sim.identified import identified_car
+        config, vehicle = identified_car(job.vehicle, job.draw, job.plant_seed, job.config,
+                                         job.config_digest)
+        replay = replace(job, vehicle=vehicle, config=config, identify=False)
+        extra = {'identified': {'vehicle': vehicle, 'config': config},
+                 'replay': replay.replay_command()}
+    metrics, wall = run_seed(job.scenario, job.overrides, job.seed, config,
+                             vehicle=vehicle, sensors=job.sensors, estimator=job.estimator,
                              sensor_set=job.sensor_set)
-    return {**job.row(), 'outcome': outcome(metrics), 'wall_s': wall,
+    return {**job.row(), **extra, 'outcome': outcome(metrics), 'wall_s': wall,
             'host': socket.gethostname(), 'finished': time.time(), 'metrics': metrics}
 
 
