@@ -277,6 +277,12 @@ def test_a_ray_campaign_stores_every_run_and_resumes_without_redoing_any(tmp_pat
                     on_row=pytest.fail) == rows   # a finished campaign runs nothing
 
 
+def test_a_task_s_own_error_comes_back_from_ray_as_itself(ray_pool):
+    (item, result), = ray_pool.map_unordered(json.loads, ['{not json'])   # raises in the task
+    assert item == '{not json' and isinstance(result, json.JSONDecodeError)
+    assert str(result).startswith('Expecting property name')   # the reason, not Ray's wrapper
+
+
 @pytest.mark.slow
 def test_an_interrupted_campaign_writes_no_summary_and_the_same_command_finishes_it(tmp_path):
     pytest.importorskip('drift_control.nmpc')

@@ -127,7 +127,8 @@ class RayExecutor(Executor):
                     try:
                         result = ray.get(ref)
                     except ray.exceptions.RayError as err:   # the worker died, a task failed
-                        result = err
+                        # a task's own exception as itself (its message, not Ray's wrapper)
+                        result = getattr(err, 'cause', None) or err
                     yield item, result
         finally:   # interrupted: nothing left running on the cluster
             for ref in pending:
