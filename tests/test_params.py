@@ -72,6 +72,17 @@ def test_a_vehicle_without_its_own_lag_keeps_the_nmpc_one_and_its_map():
     assert params_hash(vp) == params_hash(VehicleParams(**{**own, 'torque_lag': None}))
 
 
+def test_a_map_does_not_depend_on_the_powertrain_lag():
+    from drift_control.eqmap import map_hash
+    from drift_control.params import load_surface
+    vp, dry = load_vehicle(), load_surface('dry')
+    own = copy.deepcopy(vp.__dict__)
+    lagged = VehicleParams(**{**own, 'torque_lag': 0.09})
+    assert map_hash(lagged, dry) == map_hash(vp, dry) == params_hash(vp, dry)
+    heavier = VehicleParams(**{**own, 'm': vp.m + 10.0})
+    assert map_hash(heavier, dry) != map_hash(vp, dry)
+
+
 @pytest.mark.parametrize('text, value', [('5e-05', 5e-05), ('-2.5E+2', -250.0), ('1.5e3', 1500.0),
                                          ('3', 3), ('12e', '12e'), ('e5', 'e5')])
 def test_a_number_in_exponent_form_is_a_number_in_files_and_overrides(tmp_path, text, value):

@@ -13,7 +13,7 @@ import math
 import multiprocessing
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable
@@ -287,7 +287,7 @@ def build_map(vehicle: VehicleParams, surface: Surface, params: MapParams = MapP
         'version': FORMAT_VERSION,
         'surface': surface.name,
         'mu': surface.mu,
-        'params_hash': params_hash(vehicle, surface),
+        'params_hash': map_hash(vehicle, surface),
         'grid': {'beta_deg': list(params.grid.beta_deg), 'radius_m': list(params.grid.radius_m),
                  'n_beta': len(betas), 'n_radius': len(radii),
                  'layout': 'arrays shaped (n_beta, n_radius); LEFT drift: beta = -beta_abs'},
@@ -404,13 +404,19 @@ def _check_arrays(npz: Path, arrays: dict, meta: dict) -> None:
             raise MapError(f'{npz}: non-finite {k!r} at converged points')
 
 
+def map_hash(vehicle, surface) -> str:
+    """The hash a map is tied to: the vehicle and surface, less what no equilibrium depends on
+    (the powertrain's lag: a steady torque has reached the wheel)."""
+    return params_hash(replace(vehicle, torque_lag=None), surface)
+
+
 def _check_hash(meta: dict, meta_path: Path, vehicle, surface, strict: bool) -> None:
     try:
         vehicle = vehicle if vehicle is not None else load_vehicle(meta.get('vehicle'))
         surface = surface if surface is not None else load_surface(meta['surface'])
     except ParamError as err:
         raise MapError(f'{meta_path}: cannot load the parameters to check it: {err}') from None
-    current = params_hash(vehicle, surface)
+    current = map_hash(vehicle, surface)
     if current != meta['params_hash']:
         msg = (f'{meta_path}: equilibrium map built for parameter hash {meta["params_hash"]}, '
                f'current parameters hash to {current} (surface {surface.name}, mu {surface.mu}); '
@@ -422,4 +428,4 @@ def _check_hash(meta: dict, meta_path: Path, vehicle, surface, strict: bool) -> 
 
 
 __all__ = ['EquilibriumMap', 'GridParams', 'MapError', 'MapParams', 'build_map', 'fill_holes',
-           'load_map', 'load_map_params', 'map_paths', 'save_map']
+           'load_map', 'load_map_params', 'map_hash', 'map_paths', 'save_map']
