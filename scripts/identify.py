@@ -214,7 +214,9 @@ def _markdown(s: dict, out: Path) -> str:
     lines += ['', f"Grip limits in the log (fitted model): rear slip angle past 1.5 x its peak "
               f"({ev['rear_peak_deg']:.1f} deg) for {ev['rear_beyond_s']:.1f} s, up to "
               f"{ev['rear_max_deg']:.0f} deg; front slip angle up to {ev['front_max_deg']:.1f} "
-              f"deg (peak {ev['front_peak_deg']:.1f} deg)."]
+              f"deg (peak {ev['front_peak_deg']:.1f} deg); rear wheelspin past the driving "
+              f"peak for {ev['spin_s']:.1f} s, {ev['spin_straight_s']:.2f} s of it at small slip "
+              'angles (what the pure peak `pDx1` needs).']
     pt = s['powertrain']
     lines += ['', 'Powertrain: no drive torque requests in the bag, not identified.' if pt is None
               else f"Powertrain: delay {pt['delay_s'] * 1000:.0f} ms + lag "

@@ -83,6 +83,18 @@ def test_a_map_does_not_depend_on_the_powertrain_lag():
     assert map_hash(heavier, dry) != map_hash(vp, dry)
 
 
+def test_a_map_hashed_with_the_lag_stays_valid_for_that_lag(tmp_path):
+    from drift_control.eqmap import _check_hash
+    from drift_control.params import load_surface
+    vp, dry = load_vehicle(), load_surface('dry')
+    lagged = VehicleParams(**{**copy.deepcopy(vp.__dict__), 'torque_lag': 0.09})
+    meta = {'params_hash': params_hash(lagged, dry)}   # built before the lag was left out
+    _check_hash(meta, tmp_path / 'dry.json', lagged, dry, strict=True)
+    slower = VehicleParams(**{**copy.deepcopy(vp.__dict__), 'torque_lag': 0.12, 'm': vp.m + 1})
+    with pytest.raises(Exception, match='stale'):
+        _check_hash(meta, tmp_path / 'dry.json', slower, dry, strict=True)
+
+
 @pytest.mark.parametrize('text, value', [('5e-05', 5e-05), ('-2.5E+2', -250.0), ('1.5e3', 1500.0),
                                          ('3', 3), ('12e', '12e'), ('e5', 'e5')])
 def test_a_number_in_exponent_form_is_a_number_in_files_and_overrides(tmp_path, text, value):

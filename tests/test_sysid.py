@@ -4,6 +4,7 @@ The logs are made in-process in about a second: the controller's own single-trac
 (``ModelPlant``, with measurement noise) under the scripted manoeuvre driver, with tyre
 coefficients the fit does not start from, so the truth is known.
 """
+import dataclasses
 import math
 
 import numpy as np
@@ -18,7 +19,7 @@ from drift_control.vehicle import NX, VehicleModel, X
 from drift_sim.manoeuvre import Manoeuvre, ScriptedDriver, Segment, load_manoeuvre
 
 TRUE = {'front_tyre.lateral.B': 12.0, 'front_tyre.lateral.D': 0.93, 'rear_tyre.pKy1': 20.0,
-        'rear_tyre.pDy1': 0.92, 'rear_tyre.pKx1': 18.0, 'rear_tyre.pDx1': 1.05}
+        'rear_tyre.pDy1': 0.92, 'rear_tyre.pKx1': 18.0, 'rear_tyre.rBx1': 16.0}
 NOISE = {'V': 0.05, 'beta': 0.005, 'r': 0.005, 'omega': 0.1, 'delta': 0.001}
 SETTINGS = sysid.SysIdSettings(block_s=4.0)
 GRIP = (Segment('circle', 14.0, 8.0, (8.0, 18.0)),
@@ -34,9 +35,9 @@ def prior():
     return load_vehicle('m3_competition')
 
 
-def _drive(prior, segments, seed=1):
-    """The manoeuvre on the single-track model whose tyres are TRUE: a ``Log``."""
-    true = sysid.with_values(prior, TRUE)
+def _drive(prior, segments, seed=1, truth=TRUE):
+    """The manoeuvre on the single-track model whose tyres are ``truth``: a ``Log``."""
+    true = sysid.with_values(prior, truth)
     plant = ModelPlant(true, noise=NOISE, seed=seed, substep=0.0025)
     x0 = np.zeros(NX)
     x0[X.V], x0[X.OMEGA_F], x0[X.OMEGA_R] = 8.0, 8.0 / true.R_F, 8.0 / true.R_R
@@ -129,12 +130,35 @@ def test_the_yaw_inertia_is_fitted_when_asked(prior, full_log):
     assert abs(p.value - prior.I_z) < max(p.ci95, 0.03 * prior.I_z)
 
 
-def test_a_parameter_the_log_does_not_excite_is_refused_by_its_confidence(prior, grip_log):
-    """Without wheelspin the peak of the driving force is free to trade against its stiffness."""
+def test_a_parameter_the_log_does_not_excite_is_refused_by_its_confidence(prior):
+    """Without wheelspin the peak of the driving force is free to trade against its stiffness
+    (the wheelspin check waived, so that the confidence interval is what refuses it)."""
+    truth = {**TRUE, 'rear_tyre.rBx1': prior.rear_tyre.rBx1, 'rear_tyre.pDx1': 1.05}
     with pytest.raises(sysid.IdentificationError,
                        match=r'^rear_tyre\.pDx1: not identified by this log .*95 % CI'):
-        sysid.identify(grip_log, prior, 1.0, names=('rear_tyre.pKx1', 'rear_tyre.pDx1'),
+        sysid.identify(_drive(prior, GRIP, truth=truth), prior, 1.0,
+                       names=('rear_tyre.pKx1', 'rear_tyre.pDx1'),
+                       settings=dataclasses.replace(SETTINGS, min_spin_s=0.0))
+
+
+def test_the_pure_driving_peak_needs_wheelspin_at_small_slip_angles(prior, full_log):
+    """The drift spins the rear wheel at 15-35 deg of slip angle only: the log gives the
+    combined-slip weight times the peak, not the peak."""
+    with pytest.raises(sysid.IdentificationError,
+                       match=r'^rear_tyre\.pDx1: no wheelspin at small slip angles') as err:
+        sysid.identify(full_log, prior, 1.0, names=sysid.DEFAULT_FIT + ('rear_tyre.pDx1',),
                        settings=SETTINGS)
+    assert '\n' not in str(err.value)
+    # power-on on the straight spins the rear at a slip angle near zero: the peak is fitted
+    truth = {'rear_tyre.pKx1': 18.0, 'rear_tyre.pDx1': 1.05}
+    launches = (Segment('burst', 12.0, 0.0, (8.0,), period=4.0, power_s=1.0, drive_g=0.8,
+                        beta_peak_deg=6.0),)
+    log = _drive(prior, GRIP + launches, truth=truth)
+    fit = sysid.identify(log, prior, 1.0, names=('rear_tyre.pKx1', 'rear_tyre.pDx1'),
+                         settings=SETTINGS)
+    assert fit.evidence['prior']['spin_straight_s'] >= SETTINGS.min_spin_s
+    for p in fit.params:
+        assert p.value == pytest.approx(truth[p.name], rel=0.05), p
 
 
 def test_powertrain_delay_and_lag_are_recovered():

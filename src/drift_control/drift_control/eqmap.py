@@ -417,7 +417,8 @@ def _check_hash(meta: dict, meta_path: Path, vehicle, surface, strict: bool) -> 
     except ParamError as err:
         raise MapError(f'{meta_path}: cannot load the parameters to check it: {err}') from None
     current = map_hash(vehicle, surface)
-    if current != meta['params_hash']:
+    # a map built while the lag was still hashed is as good if the lag is the one it had
+    if meta['params_hash'] not in (current, params_hash(vehicle, surface)):
         msg = (f'{meta_path}: equilibrium map built for parameter hash {meta["params_hash"]}, '
                f'current parameters hash to {current} (surface {surface.name}, mu {surface.mu}); '
                f'the map is stale -- rebuild with scripts/build_maps.py')

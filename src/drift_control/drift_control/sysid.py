@@ -31,7 +31,7 @@ from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
 from drift_control.params import VehicleParams
-from drift_control.tyre import lateral_peak_slip
+from drift_control.tyre import lateral_peak_slip, longitudinal_peak_slip
 from drift_control.vehicle import NTHETA, NU, NX, THETA, U, X, rhs, slips
 
 # what the fit may change, with the bounds it keeps to (physical ranges of each coefficient)
@@ -44,11 +44,16 @@ FITTABLE = {
     'rear_tyre.pDy1': (0.2, 2.0),
     'rear_tyre.pKx1': (2.0, 80.0),
     'rear_tyre.pDx1': (0.2, 2.0),
+    'rear_tyre.rBx1': (2.0, 40.0),
     'I_z': (100.0, 20000.0),
 }
+# The rear wheel spins past its longitudinal peak only in the drift, at rear slip angles of
+# 15-35 deg, where the force is the combined-slip weight G_xa times the pure-slip force: the log
+# identifies their product. The default fits the weight (rBx1) and keeps the pure peak (pDx1)
+# from the data sheet; pDx1 is fitted only from wheelspin at small slip angles (``min_spin_s``).
 DEFAULT_FIT = ('front_tyre.lateral.B', 'front_tyre.lateral.C', 'front_tyre.lateral.D',
                'rear_tyre.pKy1', 'rear_tyre.pCy1', 'rear_tyre.pDy1',
-               'rear_tyre.pKx1', 'rear_tyre.pDx1')
+               'rear_tyre.pKx1', 'rear_tyre.rBx1')
 CHANNELS = ('V_dot', 'beta_dot', 'r_dot', 'omega_R_dot')
 _ROWS = (X.V, X.BETA, X.R, X.OMEGA_R)
 
@@ -69,6 +74,8 @@ class SysIdSettings:
     beyond_factor: float = 1.5    # 'well past': this times the peak slip angle [-] (a car at
                                   # its grip limit only touches the peak; a drift is 2-4 times)
     front_near_peak: float = 0.7  # the front's slip must reach this share of its peak slip [-]
+    min_spin_s: float = 1.0       # rear wheelspin past the longitudinal peak at small slip
+    spin_alpha_deg: float = 3.0   # angles (below this) needed to fit the pure peak pDx1 [s, deg]
     max_rel_ci: float = 0.5       # a parameter whose 95 % CI half-width exceeds this share of
                                   # its value is refused as not identified [-]
     horizon_s: float = 0.5        # multi-step prediction horizon (the NMPC's 25 x 20 ms) [s]
@@ -282,19 +289,27 @@ def correlation_time(res: np.ndarray, max_lag: int = 300) -> float:
 
 
 def grip_evidence(vehicle: VehicleParams, data: Smoothed, mask: np.ndarray, mu: float,
-                  dt: float, beyond_factor: float = SysIdSettings.beyond_factor) -> dict:
+                  dt: float, beyond_factor: float = SysIdSettings.beyond_factor,
+                  spin_alpha_deg: float = SysIdSettings.spin_alpha_deg) -> dict:
     """How far the log goes past each axle's grip limit, by the model's slips and ``vehicle``'s
-    peak slip angles: the rear's time beyond ``beyond_factor`` x its peak [s], the front's
-    largest slip (99.5th percentile) and its peak."""
-    a_F, _, a_R, _ = slips(data.x[mask].T, vehicle)
+    peak slips: the rear's time beyond ``beyond_factor`` x its peak slip angle [s], its time
+    spinning past the longitudinal peak at slip angles below ``spin_alpha_deg`` [s], the
+    front's largest slip (99.5th percentile) and its peak."""
+    a_F, _, a_R, k_R = slips(data.x[mask].T, vehicle)
     a_F, a_R = np.abs(np.asarray(a_F).ravel()), np.abs(np.asarray(a_R).ravel())
+    k_R = np.asarray(k_R).ravel()
     F_zR = vehicle.m * vehicle.g * vehicle.a / vehicle.L
     rear_peak = lateral_peak_slip(F_zR, vehicle.rear_tyre, mu)
+    spin_peak = longitudinal_peak_slip(F_zR, vehicle.rear_tyre, mu)
+    spinning = k_R > spin_peak
     lat = vehicle.front_tyre.lateral
     front_peak = math.tan(math.pi / (2.0 * lat.C)) / lat.B if lat.C > 1.0 else math.inf
     return {'rear_peak_deg': math.degrees(rear_peak),
             'rear_beyond_s': float((a_R > beyond_factor * rear_peak).sum() * dt),
             'rear_max_deg': math.degrees(float(a_R.max())),
+            'spin_peak': spin_peak,
+            'spin_straight_s': float((spinning & (a_R < math.radians(spin_alpha_deg))).sum() * dt),
+            'spin_s': float(spinning.sum() * dt),
             'front_peak_deg': math.degrees(front_peak),
             'front_max_deg': math.degrees(float(np.percentile(a_F, 99.5)))}
 
@@ -307,6 +322,13 @@ def _check_evidence(ev: dict, names, s: SysIdSettings) -> None:
             f"angle is past {s.beyond_factor:g} x its peak ({ev['rear_peak_deg']:.1f} deg) for "
             f"{ev['rear_beyond_s']:.2f} s, {s.min_beyond_s:.1f} s needed (largest "
             f"{ev['rear_max_deg']:.1f} deg); drive the power-on bursts of the manoeuvre")
+    if 'rear_tyre.pDx1' in names and ev['spin_straight_s'] < s.min_spin_s:
+        raise IdentificationError(
+            f"rear_tyre.pDx1: no wheelspin at small slip angles in the log ({ev['spin_straight_s']:.2f} "
+            f"s past the longitudinal peak slip {ev['spin_peak']:.2f} below {s.spin_alpha_deg:g} "
+            f"deg of rear slip angle, {s.min_spin_s:.1f} s needed; {ev['spin_s']:.1f} s in all, "
+            'in the drift): the drift identifies the combined-slip weight rear_tyre.rBx1, not '
+            'the peak; keep the data sheet\'s or drive straight-line wheelspin')
     front = [n for n in names if n in ('front_tyre.lateral.D', 'front_tyre.lateral.C')]
     if front and ev['front_max_deg'] < s.front_near_peak * ev['front_peak_deg']:
         raise IdentificationError(
@@ -354,7 +376,8 @@ def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
         raise IdentificationError(f'log: nothing held out to judge the fit on (every '
                                   f'{s.holdout_every}th block of {s.block_s:g} s above '
                                   f'{s.v_min:.0f} m/s); a longer log is needed')
-    evidence = grip_evidence(prior, data, train | held, mu, log.dt, s.beyond_factor)
+    evidence = grip_evidence(prior, data, train | held, mu, log.dt, s.beyond_factor,
+                             s.spin_alpha_deg)
     _check_evidence(evidence, names, s)
 
     problem = EquationError(prior, names, mu, data, train)
@@ -383,7 +406,8 @@ def identify(log: Log, prior: VehicleParams, mu: float, names=DEFAULT_FIT,
     except np.linalg.LinAlgError:
         ci = np.full(len(q), np.inf)
     fitted = with_values(prior, dict(zip(names, q)))
-    evidence_fit = grip_evidence(fitted, data, train | held, mu, log.dt, s.beyond_factor)
+    evidence_fit = grip_evidence(fitted, data, train | held, mu, log.dt, s.beyond_factor,
+                                  s.spin_alpha_deg)
     _check_evidence(evidence_fit, names, s)
     for n, v, c, lo_i, hi_i in zip(names, q, ci, lo, hi):
         if not np.isfinite(c) or c > s.max_rel_ci * abs(v):

@@ -65,11 +65,13 @@ def identified_car(vehicle: str, draw: int | None, plant_seed: int | None,
     model identified from that plant's own log; prepared on first use.
 
     ``digest`` (the configuration's, ``campaign.config_digest``) keys the cache with the
-    plant's overrides: another configuration or draw is another car.
+    plant's overrides and the parameters fitted: another configuration, draw or fit is another
+    car.
     """
     source = Path(config or config_dir())
     overrides = sysid_overrides(vehicle, draw, plant_seed, config)
-    key = hashlib.sha256(json.dumps([vehicle, list(overrides), digest]).encode()).hexdigest()[:12]
+    key = hashlib.sha256(json.dumps([vehicle, list(overrides), digest, list(DEFAULT_FIT)])
+                         .encode()).hexdigest()[:12]
     name = identified_name(vehicle, draw)
     home = cache_root() / f'{name}_{key}'
     out = home / 'config'
