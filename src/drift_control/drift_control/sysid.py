@@ -308,7 +308,8 @@ def grip_evidence(vehicle: VehicleParams, data: Smoothed, mask: np.ndarray, mu: 
             'rear_beyond_s': float((a_R > beyond_factor * rear_peak).sum() * dt),
             'rear_max_deg': math.degrees(float(a_R.max())),
             'spin_peak': spin_peak,
-            'spin_straight_s': float((spinning & (a_R < math.radians(spin_alpha_deg))).sum() * dt),
+            'spin_straight_s': float((spinning & (a_R < math.radians(spin_alpha_deg))).sum()
+                                     * dt),
             'spin_s': float(spinning.sum() * dt),
             'front_peak_deg': math.degrees(front_peak),
             'front_max_deg': math.degrees(float(np.percentile(a_F, 99.5)))}
@@ -324,8 +325,9 @@ def _check_evidence(ev: dict, names, s: SysIdSettings) -> None:
             f"{ev['rear_max_deg']:.1f} deg); drive the power-on bursts of the manoeuvre")
     if 'rear_tyre.pDx1' in names and ev['spin_straight_s'] < s.min_spin_s:
         raise IdentificationError(
-            f"rear_tyre.pDx1: no wheelspin at small slip angles in the log ({ev['spin_straight_s']:.2f} "
-            f"s past the longitudinal peak slip {ev['spin_peak']:.2f} below {s.spin_alpha_deg:g} "
+            'rear_tyre.pDx1: no wheelspin at small slip angles in the log '
+            f"({ev['spin_straight_s']:.2f} s past the longitudinal peak slip "
+            f"{ev['spin_peak']:.2f} below {s.spin_alpha_deg:g} "
             f"deg of rear slip angle, {s.min_spin_s:.1f} s needed; {ev['spin_s']:.1f} s in all, "
             'in the drift): the drift identifies the combined-slip weight rear_tyre.rBx1, not '
             'the peak; keep the data sheet\'s or drive straight-line wheelspin')
