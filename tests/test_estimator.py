@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from conftest import load_script
 
-from drift_control.estimator import (E, Estimator, LatestSamples, _Monitor, effective_samples,
-                                     load_estimator_params, mean_nis_interval)
+from drift_control.estimator import (FIELDS, E, Estimator, LatestSamples, _Monitor, _RepeatTest,
+                                     effective_samples, load_estimator_params, mean_nis_interval,
+                                     repeat_count, repeat_probability)
 from drift_control.params import ParamError, config_dir, load_vehicle
 from drift_control.signals import Validity, VehicleState
 from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
@@ -243,12 +244,57 @@ def test_a_unit_noisier_than_its_figures_is_not_named_faulty(monkeypatch):
     assert 5.0 <= first_event(est, 'imu.ax/ay', 'bias step') <= 5.12, est.events
 
 
-def test_a_live_signal_is_not_called_frozen():
-    """The INS sideslip's noise is 1.75 LSB: over 100,000 samples of a live one (1,000 s at
-    100 Hz) no run of identical values is long enough to be named frozen (with 7: four)."""
-    mon = _Monitor('ins.beta', PARAMS)
-    z = np.round(np.random.default_rng(0).normal(0.0, 1.75, 100_000))
-    assert not any(mon.frozen(v) for v in z)
+def _quantised_noise(std, lsb, n, seed=0):
+    """A still signal at a random offset to its grid, white noise ``std``, rounded to ``lsb``."""
+    rng = np.random.default_rng(seed)
+    return np.round((rng.uniform() + rng.normal(0.0, std, n)) / lsb) * lsb
+
+
+def test_the_repeat_probability_is_that_of_rounded_noise():
+    """Runs of n equal values of rounded white noise, counted over many offsets of the grid."""
+    rng = np.random.default_rng(1)
+    for noise in (0.6, 1.75):
+        z = np.round(rng.uniform(size=(4000, 1)) + rng.normal(0.0, noise, (4000, 8)))
+        for n in (2, 4):
+            seen = np.mean(np.all(z[:, :n] == z[:, :1], axis=1))
+            assert seen == pytest.approx(repeat_probability(noise, n), rel=0.1, abs=2e-3)
+
+
+def test_each_ins_channel_repeats_as_often_as_its_noise_allows():
+    """The count per channel is the fewest repeats its white noise makes rarer than the false
+    rate: the sideslip (1.75 steps of noise) 9 values, named within 90 ms at 100 Hz; the
+    position (1 step) needs more; without rounding two equal values are enough."""
+    counts = {f: _RepeatTest(PARAMS.ins_noise_std[f], PARAMS.ins_resolution[f],
+                             PARAMS.frozen_false_rate).count for f in FIELDS['ins']}
+    assert counts['beta'] == 9 and counts['x'] > counts['beta'] > counts['yaw'], counts
+    for noise in (0.875, 1.75, 5.0):
+        n = repeat_count(noise, PARAMS.frozen_false_rate)
+        assert repeat_probability(noise, n) <= PARAMS.frozen_false_rate
+        assert repeat_probability(noise, n - 1) > PARAMS.frozen_false_rate
+    assert _RepeatTest(0.01, 0.0, 1e-6).count == 2
+    assert _RepeatTest(0.001, 0.01, 1e-6).count is None    # noise far below the step
+
+
+def test_the_ins_resolution_is_the_frames_own():
+    """The estimator's INS resolution is the DBC's scale factor of each signal."""
+    import cantools
+    db = cantools.database.load_file(str(config_dir() / 'can' / 'drift_vehicle.dbc'))
+    scale = {sig.name: sig.scale for msg in db.messages for sig in msg.signals}
+    assert PARAMS.ins_resolution == {f: scale[f] for f in FIELDS['ins']}
+
+
+@pytest.mark.parametrize('quieter', [1.0, 0.5])
+def test_a_live_signal_is_not_called_frozen(quieter):
+    """1,000 s at 100 Hz of the sideslip, at its figure's noise and at half of it (a quieter
+    unit repeats more: it learns that, and its count grows); a freeze is still named."""
+    lsb = PARAMS.ins_resolution['beta']
+    std = quieter * math.sqrt(PARAMS.ins_noise_std['beta'] ** 2 - lsb ** 2 / 12)
+    test = _RepeatTest(PARAMS.ins_noise_std['beta'], lsb, PARAMS.frozen_false_rate,
+                       PARAMS.noise_learning_time)
+    z = _quantised_noise(std, lsb, 100_000)
+    assert not any(test.feed(v, k * DT) for k, v in enumerate(z))
+    assert test.count >= (9 if quieter == 1.0 else 14), test.count
+    assert any(test.feed(z[-1], 1000.0 + k * DT) for k in range(test.count))
 
 
 def test_effective_samples_and_the_interval_of_a_mean_nis():

@@ -26,6 +26,8 @@ sensor faults) and never uses the controller's model; the NMPC's disturbance ``d
 """
 from __future__ import annotations
 
+import bisect
+import functools
 import math
 import time
 from collections import deque
@@ -94,7 +96,8 @@ class EstimatorParams:
     persist: int                # rejections in a row that mean a step, not an outlier [-]
     bias_window: int            # innovations in the bias test's window [-]
     bias_threshold: float       # |mean normalised innovation| sqrt(window) beyond: biased [-]
-    frozen_samples: int         # identical values in a row that mean a frozen signal [-]
+    frozen_false_rate: float    # chance per sample that a live INS channel, at its white noise,
+                                # repeats itself long enough to be named frozen [-]
     stuck_min_speed: float      # a wheel reading ~0 while its filter says more: stuck [rad/s]
     stuck_samples: int          # such readings in a row [-]
     max_coast: float            # without velocity aiding longer than this: V, beta invalid [s]
@@ -119,6 +122,8 @@ class EstimatorParams:
     step_span: float = 0.3      # ... undecided this long after the jump: dismissed [s]
     noise_learning_time: float = 0.0    # the fault tests learn how much noisier than its
                                 # figures each channel is over this long (0: never) [s]
+    ins_resolution: dict[str, float] | None = None   # the INS frames' LSB per channel (None:
+                                # unquantised): with the white noise, how often a live value repeats
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -139,7 +144,9 @@ class EstimatorParams:
         for name in ('roll_gradient', 'accel_jump', 'step_accept', 'step_dismiss', 'step_span',
                      'noise_learning_time'):
             require(getattr(self, name) >= 0, f'estimator.{name}', 'must be >= 0')
-        for name in ('persist', 'bias_window', 'frozen_samples', 'stuck_samples'):
+        require(0 < self.frozen_false_rate < 0.01, 'estimator.frozen_false_rate',
+                'must be in (0, 0.01)')
+        for name in ('persist', 'bias_window', 'stuck_samples'):
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
         require(self.accel_noise_std >= 0 and self.gyro_noise_std >= 0, 'estimator',
                 'accel_noise_std and gyro_noise_std must be >= 0 (0: the weights)')
@@ -149,7 +156,7 @@ class EstimatorParams:
         for key in ('ins_slow_std', 'ins_slow_tau'):
             for k, v in getattr(self, key).items():
                 require(v > 0, f'estimator.{key}.{k}', 'must be positive')
-        for key in ('ins_std', 'ins_test_std', 'ins_noise_std'):
+        for key in ('ins_std', 'ins_test_std', 'ins_noise_std', 'ins_resolution'):
             given = getattr(self, key)
             if given is None:
                 continue
@@ -169,12 +176,92 @@ def load_estimator_params(path, overrides=()) -> EstimatorParams:
     return from_dict(EstimatorParams, raw, 'estimator')
 
 
+def _bin_probabilities(noise: float) -> np.ndarray:
+    """Chance of each quantisation bin (rows) for a still signal with white noise ``noise`` (in
+    quantisation steps), at 64 offsets of the grid to the signal (columns)."""
+    offset = np.linspace(0.0, 1.0, 64, endpoint=False)
+    edges = np.arange(-math.ceil(8 * noise) - 1, math.ceil(8 * noise) + 2)[:, None] - offset
+    cdf = 0.5 * (1.0 + np.vectorize(math.erf)(edges / (noise * math.sqrt(2.0))))
+    return np.diff(cdf, axis=0)
+
+
+def repeat_probability(noise: float, n: int) -> float:
+    """Chance that ``n`` samples in a row of a still signal with white noise ``noise`` (in
+    quantisation steps) read the same value; the grid's offset to the signal uniform."""
+    return float(np.mean(np.sum(_bin_probabilities(noise) ** n, axis=0)))
+
+
+@functools.lru_cache(maxsize=256)
+def repeat_count(noise: float, false_rate: float, most: int = 100) -> int | None:
+    """Identical values in a row that name a channel frozen: the fewest a live channel (white
+    noise ``noise`` in quantisation steps) repeats with at most ``false_rate`` per sample.
+    None when not even ``most`` would do: its noise is too far below the step for a repeat
+    to say anything."""
+    bins = _bin_probabilities(noise)
+    power = bins * bins
+    for n in range(2, most + 1):
+        if np.mean(np.sum(power, axis=0)) <= false_rate:
+            return n
+        power *= bins
+    return None
+
+
+@functools.lru_cache(maxsize=64)
+def _repeat_table(noise: float, false_rate: float) -> tuple[list[float], list[int | None]]:
+    """For a unit quieter than its figure ``noise`` (down to an eighth of it): the chance of
+    one repeat (ascending) and the repeat count that noise needs, for looking up the count
+    from the repeats seen."""
+    levels = noise * np.geomspace(1.0, 0.125, 25)
+    return ([repeat_probability(float(x), 2) for x in levels],
+            [repeat_count(float(x), false_rate) for x in levels])
+
+
+class _RepeatTest:
+    """'Frozen': the same raw value ``count`` times in a row, ``count`` from the channel's white
+    noise and its frame's resolution for a false name at most ``false_rate`` per sample. A unit
+    quieter than its figures repeats more: the share of repeats is learnt over ``learning_time``
+    and lengthens the count (never shortens it: a moving signal repeats less than noise alone)."""
+
+    def __init__(self, noise_std: float, resolution: float, false_rate: float,
+                 learning_time: float = 0.0):
+        self.last, self.same = None, 0
+        white = noise_std ** 2 - resolution ** 2 / 12.0   # the figure includes the rounding
+        if resolution <= 0.0:
+            self._p2, self._counts = [0.0], [2]        # unquantised noise never repeats
+        elif white <= 0.0:
+            self._p2, self._counts = [0.0], [None]
+        else:
+            self._p2, self._counts = _repeat_table(math.sqrt(white) / resolution, false_rate)
+        self.repeats = self._p2[0]   # the learnt share of samples equal to the one before
+        self._tau, self._stamp, self._seen = learning_time, None, 0
+
+    @property
+    def count(self) -> int | None:
+        """Identical values in a row that mean frozen now (None: never)."""
+        return self._counts[max(0, bisect.bisect_right(self._p2, self.repeats) - 1)]
+
+    def feed(self, value: float, stamp: float, learn: bool = True) -> bool:
+        """The raw value; True while it has repeated ``count`` times."""
+        repeat = value == self.last
+        self.same = self.same + 1 if repeat else 1
+        self.last = value
+        if learn and self._tau:
+            self._seen += 1
+            dt = stamp - self._stamp if self._stamp is not None else 0.0
+            a = min(1.0, max(dt, 0.0) / self._tau)
+            self.repeats += a * (float(repeat) - self.repeats)
+        self._stamp = stamp
+        count = self.count
+        return count is not None and self.same >= count
+
+
 class _Monitor:
     """Fault tests of one scalar channel, and its NIS record."""
 
-    def __init__(self, name: str, p: EstimatorParams):
+    def __init__(self, name: str, p: EstimatorParams, repeats: _RepeatTest | None = None):
         self.name, self.p = name, p
-        self.last, self.same, self.rejected = None, 0, 0
+        self.repeats = repeats   # the frozen test (None: not judged)
+        self.rejected = 0
         self.window = deque(maxlen=p.bias_window)
         self.stamps = deque(maxlen=p.bias_window)
         self.span = 0.0   # the time a step or bias took to be seen [s]
@@ -184,11 +271,12 @@ class _Monitor:
         # figures: > 1), learnt over ``noise_learning_time``; its running count and last stamp
         self.noise_ratio, self.noise_ratio_act, self._seen, self._stamp = 1.0, 1.0, 0, None
 
-    def frozen(self, value: float) -> bool:
-        """Feed the raw value; True while it has repeated ``frozen_samples`` times."""
-        self.same = self.same + 1 if value == self.last else 1
-        self.last = value
-        return self.same >= self.p.frozen_samples
+    def frozen(self, value: float, stamp: float) -> bool:
+        """Feed the raw value; True while it has repeated itself long enough to be frozen (the
+        share of repeats is not learnt while the channel is left out as frozen)."""
+        if self.repeats is None:
+            return False
+        return self.repeats.feed(value, stamp, learn=self.excluded != 'frozen')
 
     def judge(self, nis: float, normalised: float, stamp: float,
               consistency: float | None = None) -> str:
@@ -355,7 +443,10 @@ class Estimator:
         self.torque = _RateFilter(p.torque_std, p.torque_jerk)
         self.yaw_rate = _RateFilter(p.gyro_std, p.yaw_jerk)
         self._steering_torque = 0.0
-        self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p) for u in FIELDS for f in FIELDS[u]}
+        noise, lsb = p.ins_noise_std or p.ins_test_std, p.ins_resolution or {}
+        self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p, _RepeatTest(
+            noise[f], lsb.get(f, 0.0), p.frozen_false_rate, p.noise_learning_time)
+            if u == 'ins' else None) for u in FIELDS for f in FIELDS[u]}
         self.monitors['wheels.front_speed'] = _Monitor('wheels.front_speed', p)
         self._stuck = [0] * 4
         self._steps: list[_StepHypothesis] = []
@@ -635,7 +726,7 @@ class Estimator:
         std = self.p.ins_std
         aided = False
         for name, z in zip(FIELDS['ins'], s.values):
-            if self._frozen_check(f'ins.{name}', z):
+            if self._frozen_check(f'ins.{name}', z, s.stamp):
                 continue
             H = np.zeros(NE)
             x = self.x
@@ -733,10 +824,10 @@ class Estimator:
         elif verdict not in ('reject', 'jump'):
             filt.update(stamp, z)
 
-    def _frozen_check(self, name: str, z: float) -> bool:
+    def _frozen_check(self, name: str, z: float, stamp: float) -> bool:
         """True while ``name`` is frozen (left out); names the fault once, clears on change."""
         mon = self.monitors[name]
-        frozen = mon.frozen(z)
+        frozen = mon.frozen(z, stamp)
         if frozen and mon.excluded is None:
             mon.excluded = 'frozen'
             self._event(name, 'frozen')
