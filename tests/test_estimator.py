@@ -372,6 +372,10 @@ def test_bad_estimator_parameters_name_the_key(tmp_path):
         load_estimator_params(config_dir() / 'estimator.yaml', ['ins_noise_std.vz=0.1'])
     with pytest.raises(ParamError, match='gyro_noise_std'):
         load_estimator_params(config_dir() / 'estimator.yaml', ['gyro_noise_std=-1'])
+    with pytest.raises(ParamError, match='estimator.ins_resolution.beta'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['ins_resolution.beta=-0.001'])
+    with pytest.raises(ParamError, match='estimator.frozen_false_rate'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['frozen_false_rate=0'])
 
 
 def test_frame_stepper_answers_a_repeated_frame_and_restarts_on_a_clock_step_back():

@@ -98,6 +98,7 @@ class EstimatorParams:
     bias_threshold: float       # |mean normalised innovation| sqrt(window) beyond: biased [-]
     frozen_false_rate: float    # chance per sample that a live INS channel, at its white noise,
                                 # repeats itself long enough to be named frozen [-]
+    ins_resolution: dict[str, float]    # the INS frames' LSB per channel (0: unquantised)
     stuck_min_speed: float      # a wheel reading ~0 while its filter says more: stuck [rad/s]
     stuck_samples: int          # such readings in a row [-]
     max_coast: float            # without velocity aiding longer than this: V, beta invalid [s]
@@ -122,8 +123,6 @@ class EstimatorParams:
     step_span: float = 0.3      # ... undecided this long after the jump: dismissed [s]
     noise_learning_time: float = 0.0    # the fault tests learn how much noisier than its
                                 # figures each channel is over this long (0: never) [s]
-    ins_resolution: dict[str, float] | None = None   # the INS frames' LSB per channel (None:
-                                # unquantised): with the white noise, how often a live value repeats
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -165,7 +164,10 @@ class EstimatorParams:
             require(not missing and not unknown, f'estimator.{key}',
                     f'needs exactly {list(FIELDS["ins"])} (missing {missing}, unknown {unknown})')
             for k, v in given.items():
-                require(v > 0, f'estimator.{key}.{k}', 'must be positive')
+                if key == 'ins_resolution':
+                    require(v >= 0, f'estimator.{key}.{k}', 'must be >= 0 (0: unquantised)')
+                else:
+                    require(v > 0, f'estimator.{key}.{k}', 'must be positive')
 
 
 def load_estimator_params(path, overrides=()) -> EstimatorParams:
@@ -443,9 +445,9 @@ class Estimator:
         self.torque = _RateFilter(p.torque_std, p.torque_jerk)
         self.yaw_rate = _RateFilter(p.gyro_std, p.yaw_jerk)
         self._steering_torque = 0.0
-        noise, lsb = p.ins_noise_std or p.ins_test_std, p.ins_resolution or {}
+        noise = p.ins_noise_std or p.ins_test_std
         self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p, _RepeatTest(
-            noise[f], lsb.get(f, 0.0), p.frozen_false_rate, p.noise_learning_time)
+            noise[f], p.ins_resolution[f], p.frozen_false_rate, p.noise_learning_time)
             if u == 'ins' else None) for u in FIELDS for f in FIELDS[u]}
         self.monitors['wheels.front_speed'] = _Monitor('wheels.front_speed', p)
         self._stuck = [0] * 4
