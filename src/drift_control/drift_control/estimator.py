@@ -235,7 +235,7 @@ class _RepeatTest:
         else:
             self._p2, self._counts = _repeat_table(math.sqrt(white) / resolution, false_rate)
         self.repeats = self._p2[0]   # the learnt share of samples equal to the one before
-        self._tau, self._stamp, self._seen = learning_time, None, 0
+        self._tau, self._stamp = learning_time, None
 
     @property
     def count(self) -> int | None:
@@ -248,7 +248,6 @@ class _RepeatTest:
         self.same = self.same + 1 if repeat else 1
         self.last = value
         if learn and self._tau:
-            self._seen += 1
             dt = stamp - self._stamp if self._stamp is not None else 0.0
             a = min(1.0, max(dt, 0.0) / self._tau)
             self.repeats += a * (float(repeat) - self.repeats)
