@@ -117,6 +117,17 @@ def test_a_sensor_fault_is_named_within_100_ms(fault, channel, reason):
     assert all(s.wheel_speeds[0] > 20.0 for s in states[during])
 
 
+def test_a_frozen_wheel_is_named_and_replaced_by_its_axle_partner():
+    """The front-left wheel repeats its value from 5 s (50 Hz, 3 steps of noise: 7 values, 120 ms
+    after the first); its axle partner stands in, and no other wheel or the drive before is named."""
+    est, _, truths, states = drive(6.0, ['wheels.FL:freeze:5:20'])
+    seen = first_event(est, 'wheels.FL', 'frozen')
+    assert seen is not None and 5.0 < seen <= 5.2, est.events
+    assert not [e for e in est.events if e.reason == 'frozen' and e.channel != 'wheels.FL']
+    after = slice(int(round(seen / DT)) + 1, None)
+    assert all(s.wheel_speeds[0] == s.wheel_speeds[1] for s in states[after])
+
+
 def test_an_accelerometer_bias_step_is_named_and_learnt_while_the_sideslip_holds():
     """1 m/s^2 on ay: the sideslip integrates it (6.4 deg/s at 9 m/s) until the INS confirms
     the IMU's jump as an offset step; then the error it left is taken out of the state."""
@@ -276,11 +287,12 @@ def test_each_ins_channel_repeats_as_often_as_its_noise_allows():
 
 
 def test_the_ins_resolution_is_the_frames_own():
-    """The estimator's INS resolution is the DBC's scale factor of each signal."""
+    """The estimator's INS and wheel resolutions are the DBC's scale factors."""
     import cantools
     db = cantools.database.load_file(str(config_dir() / 'can' / 'drift_vehicle.dbc'))
     scale = {sig.name: sig.scale for msg in db.messages for sig in msg.signals}
     assert PARAMS.ins_resolution == {f: scale[f] for f in FIELDS['ins']}
+    assert PARAMS.wheel_resolution == scale['omega_FL'] == scale['omega_RR']
 
 
 @pytest.mark.parametrize('quieter', [1.0, 0.5])

@@ -99,6 +99,7 @@ class EstimatorParams:
     frozen_false_rate: float    # chance per sample that a live INS channel, at its white noise,
                                 # repeats itself long enough to be named frozen [-]
     ins_resolution: dict[str, float]    # the INS frames' LSB per channel (0: unquantised)
+    wheel_resolution: float     # the wheel speed frames' LSB (0: unquantised) [rad/s]
     stuck_min_speed: float      # a wheel reading ~0 while its filter says more: stuck [rad/s]
     stuck_samples: int          # such readings in a row [-]
     max_coast: float            # without velocity aiding longer than this: V, beta invalid [s]
@@ -145,6 +146,8 @@ class EstimatorParams:
             require(getattr(self, name) >= 0, f'estimator.{name}', 'must be >= 0')
         require(0 < self.frozen_false_rate < 0.01, 'estimator.frozen_false_rate',
                 'must be in (0, 0.01)')
+        require(self.wheel_resolution >= 0, 'estimator.wheel_resolution',
+                'must be >= 0 (0: unquantised)')
         for name in ('persist', 'bias_window', 'stuck_samples'):
             require(getattr(self, name) >= 2, f'estimator.{name}', 'must be >= 2')
         require(self.accel_noise_std >= 0 and self.gyro_noise_std >= 0, 'estimator',
@@ -445,9 +448,12 @@ class Estimator:
         self.yaw_rate = _RateFilter(p.gyro_std, p.yaw_jerk)
         self._steering_torque = 0.0
         noise = p.ins_noise_std or p.ins_test_std
-        self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p, _RepeatTest(
-            noise[f], p.ins_resolution[f], p.frozen_false_rate, p.noise_learning_time)
-            if u == 'ins' else None) for u in FIELDS for f in FIELDS[u]}
+        repeats = {'ins': lambda f: _RepeatTest(noise[f], p.ins_resolution[f],
+                                                p.frozen_false_rate, p.noise_learning_time),
+                   'wheels': lambda f: _RepeatTest(p.wheel_std, p.wheel_resolution,
+                                                   p.frozen_false_rate, p.noise_learning_time)}
+        self.monitors = {f'{u}.{f}': _Monitor(f'{u}.{f}', p, repeats[u](f) if u in repeats
+                                              else None) for u in FIELDS for f in FIELDS[u]}
         self.monitors['wheels.front_speed'] = _Monitor('wheels.front_speed', p)
         self._stuck = [0] * 4
         self._steps: list[_StepHypothesis] = []
@@ -808,6 +814,11 @@ class Estimator:
                 mon.excluded = None
                 filt.reset(s.stamp, z)
                 continue
+            # a wheel at rest repeats its zero: frozen is judged on a turning wheel only
+            if abs(z) >= 0.5 * p.stuck_min_speed and self._frozen_check(key, z, s.stamp):
+                continue
+            if mon.excluded == 'frozen':   # it stopped turning: no longer judged frozen
+                mon.excluded = None
             self._scalar(filt, key, s.stamp, z)
 
     def _scalar(self, filt: _RateFilter, name: str, stamp: float, z: float) -> None:
