@@ -224,8 +224,9 @@ def _repeat_table(noise: float, false_rate: float) -> tuple[list[float], list[in
 class _RepeatTest:
     """'Frozen': the same raw value ``count`` times in a row, ``count`` from the channel's white
     noise and its frame's resolution for a false name at most ``false_rate`` per sample. A unit
-    quieter than its figures repeats more: the share of repeats is learnt over ``learning_time``
-    and lengthens the count (never shortens it: a moving signal repeats less than noise alone)."""
+    quieter than its figures repeats more: the share of repeats is learnt (the mean of all
+    samples at first, then over ``learning_time``) and lengthens the count (never shortens it: a
+    moving signal repeats less than noise alone)."""
 
     def __init__(self, noise_std: float, resolution: float, false_rate: float,
                  learning_time: float = 0.0):
@@ -238,7 +239,7 @@ class _RepeatTest:
         else:
             self._p2, self._counts = _repeat_table(math.sqrt(white) / resolution, false_rate)
         self.repeats = self._p2[0]   # the learnt share of samples equal to the one before
-        self._tau, self._stamp = learning_time, None
+        self._tau, self._stamp, self._seen = learning_time, None, 0
 
     @property
     def count(self) -> int | None:
@@ -250,9 +251,10 @@ class _RepeatTest:
         repeat = value == self.last
         self.same = self.same + 1 if repeat else 1
         self.last = value
-        if learn and self._tau:
+        if learn and self._tau:   # the mean of all samples at first, then over the time
+            self._seen += 1
             dt = stamp - self._stamp if self._stamp is not None else 0.0
-            a = min(1.0, max(dt, 0.0) / self._tau)
+            a = max(1.0 / self._seen, min(1.0, max(dt, 0.0) / self._tau))
             self.repeats += a * (float(repeat) - self.repeats)
         self._stamp = stamp
         count = self.count
