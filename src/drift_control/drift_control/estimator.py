@@ -96,8 +96,8 @@ class EstimatorParams:
     persist: int                # rejections in a row that mean a step, not an outlier [-]
     bias_window: int            # innovations in the bias test's window [-]
     bias_threshold: float       # |mean normalised innovation| sqrt(window) beyond: biased [-]
-    frozen_false_rate: float    # chance per sample that a live INS channel, at its white noise,
-                                # repeats itself long enough to be named frozen [-]
+    frozen_false_rate: float    # chance per sample that a live INS channel or turning wheel, at
+                                # its white noise, repeats long enough to be named frozen [-]
     ins_resolution: dict[str, float]    # the INS frames' LSB per channel (0: unquantised)
     wheel_resolution: float     # the wheel speed frames' LSB (0: unquantised) [rad/s]
     stuck_min_speed: float      # a wheel reading ~0 while its filter says more: stuck [rad/s]
