@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from conftest import load_script
 
-from drift_control.estimator import (FIELDS, E, Estimator, LatestSamples, _Monitor, _RepeatTest,
+from drift_control.estimator import (FIELDS, E, Estimator, LatestSamples, _InnovationPairs,
+                                     _Monitor, _RepeatTest,
                                      effective_samples, load_estimator_params, mean_nis_interval,
                                      repeat_count, repeat_probability)
 from drift_control.params import ParamError, config_dir, load_vehicle
@@ -358,6 +359,58 @@ def test_the_actual_covariance_carries_the_ins_slow_errors():
                 assert all(0.75 < v < 1.25 for v in nis.values()), nis
             else:
                 assert nis['yaw'] > 1.5 and nis['x'] + nis['y'] > 2.4, nis
+
+
+def test_innovation_pairs_give_the_exact_spread_of_a_mean_nis():
+    """A position under a random walk, measured with a slow (Gauss-Markov) error and white
+    noise by a filter with a fixed gain that knows nothing of the slow error: the variance of
+    the NIS sum from ``_InnovationPairs`` is the one every innovation's coefficients on every
+    noise source give, to rounding (a step's transitions applied at once as the estimator does)."""
+    phi, q, slow, R, k, steps = 0.95, 1e-3, 0.04, 0.01, 0.3, 60
+    A, H, K = np.diag([1.0, phi]), np.array([1.0, 1.0]), np.array([k, 0.0])
+    P = np.diag([0.02, slow])                     # the actual covariance of [p - p_hat, g]
+    sources = 2 + 3 * steps                       # the initial errors, then per step 3 noises
+    C = np.zeros((2, sources))                    # the error's coefficients on each source
+    C[:, :2] = np.diag(np.sqrt([0.02, slow]))
+    pairs = _InnovationPairs(['z'], 2)
+    var_sum, rows, S_all = 0.0, [], []
+    for i in range(steps):
+        P = A @ P @ A.T + np.diag([q, slow * (1 - phi * phi)])
+        C = A @ C
+        C[:, 2 + 3 * i:4 + 3 * i] += np.diag(np.sqrt([q, slow * (1 - phi * phi)]))
+        pairs.transition(A)
+        S = float(H @ P @ H) + R
+        row = H @ C
+        row[4 + 3 * i] = math.sqrt(R)
+        rows.append(row)
+        S_all.append(S)
+        var_sum += 2.0 + 4.0 * pairs.past(0, H) / S
+        D = P @ H - K * S
+        P = P - np.outer(K, H @ P) - np.outer(P @ H, K) + S * np.outer(K, K)
+        C = C - np.outer(K, row)
+        pairs.update(K, H)
+        pairs.add(0, D, S)
+        if i % 3 == 2:
+            pairs.end_step()
+    L = np.array(rows)
+    assert np.allclose(np.sum(L * L, axis=1), S_all)   # S is each innovation's variance
+    cov = L @ L.T
+    exact = 2.0 * np.sum(cov ** 2 / np.outer(S_all, S_all))
+    assert var_sum == pytest.approx(exact, rel=1e-9)
+    assert exact > 1.1 * 2.0 * steps, 'the slow error correlates the innovations'
+
+
+def test_the_mean_nis_interval_knows_the_slow_errors():
+    """The INS pose's slow error correlates its innovations for seconds: the interval counts
+    far fewer independent samples there than for the yaw rate, whose errors are white."""
+    est, *_ = drive(10.0)
+    nis = est.nis_summary()
+    assert nis['ins.x']['interval_from'] == 'model'
+    assert nis['ins.x']['n_eff'] < 0.05 * nis['ins.x']['n']
+    assert nis['ins.r']['n_eff'] > 0.5 * nis['ins.r']['n']
+    assert nis['imu.r']['interval_from'] == 'samples'
+    est.clear_records()
+    assert est.nis_summary() == {} and est.monitors['ins.x'].nis_var == 0.0
 
 
 def test_the_pose_prediction_stays_on_the_arc():

@@ -273,6 +273,7 @@ class _Monitor:
         self.span = 0.0   # the time a step or bias took to be seen [s]
         self.excluded: str | None = None    # the reason it is left out, or None
         self.nis: list[float] = []
+        self.nis_var = 0.0   # the variance of the NIS record's sum a consistent filter has
         # the innovations' mean square against what the tests assume (a unit noisier than its
         # figures: > 1), learnt over ``noise_learning_time``; its running count and last stamp
         self.noise_ratio, self.noise_ratio_act, self._seen, self._stamp = 1.0, 1.0, 0, None
@@ -408,6 +409,67 @@ class _RateFilter:
         return float(self.x[0] + self.x[1] * max(0.0, t - self.t))
 
 
+class _InnovationPairs:
+    """How the aiding channels' innovations correlate, as the actual covariance implies it.
+
+    For Gaussian innovations ``Var(NIS) = 2`` and ``Cov(NIS_i, NIS_j) = 2 Cov(nu_i, nu_j)^2 /
+    (S_i S_j)``, so these give the spread of a run's mean NIS (``Estimator.nis_summary``). Per
+    channel ``M = sum_i D_i D_i' / S_i`` over its past innovations, ``D_i`` the actual error's
+    covariance with innovation ``i``, carried forward as the error is. A step's transitions are
+    multiplied into one matrix and applied to the ``M``'s once, when the step ends.
+    """
+
+    def __init__(self, channels, n: int):
+        self.index = {c: i for i, c in enumerate(channels)}
+        self.n = n
+        self.clear()
+
+    def clear(self) -> None:
+        self.M = np.zeros((len(self.index), self.n, self.n))
+        self._start_step()
+
+    def _start_step(self) -> None:
+        self.phi = np.eye(self.n)          # the error's transition since the step began
+        self.D = np.zeros((self.n, 16))    # this step's innovations' D, carried to now
+        self.owner = np.zeros(16, dtype=int)
+        self.S = np.ones(16)
+        self.k = 0
+
+    def transition(self, A: np.ndarray) -> None:
+        """The error goes to ``A e``."""
+        self.phi = A @ self.phi
+        if self.k:
+            self.D[:, :self.k] = A @ self.D[:, :self.k]
+
+    def update(self, K: np.ndarray, H: np.ndarray) -> None:
+        """The error goes to ``(I - K H) e`` (plus the update's own noise, independent)."""
+        self.phi -= np.outer(K, H @ self.phi)
+        if self.k:
+            self.D[:, :self.k] -= np.outer(K, H @ self.D[:, :self.k])
+
+    def past(self, channel: int, H: np.ndarray) -> float:
+        """``sum_i Cov(nu, nu_i)^2 / S_i`` over the channel's earlier innovations, for a new
+        innovation ``nu = H e + noise``."""
+        g = H @ self.phi
+        q = float(g @ self.M[channel] @ g)
+        if self.k:
+            mine = self.owner[:self.k] == channel
+            q += float(np.sum((H @ self.D[:, :self.k][:, mine]) ** 2 / self.S[:self.k][mine]))
+        return q
+
+    def add(self, channel: int, D: np.ndarray, S: float) -> None:
+        if self.k == self.D.shape[1]:
+            self.end_step()
+        self.D[:, self.k], self.owner[self.k], self.S[self.k] = D, channel, S
+        self.k += 1
+
+    def end_step(self) -> None:
+        self.M = self.phi @ self.M @ self.phi.T
+        for j in range(self.k):
+            self.M[self.owner[j]] += np.outer(self.D[:, j], self.D[:, j]) / self.S[j]
+        self._start_step()
+
+
 class Estimator:
     """EKF of the body velocity, pose and IMU biases, plus one filter per wheel and actuator.
 
@@ -437,6 +499,8 @@ class Estimator:
         self.P_act = np.zeros((NE + len(self._slow),) * 2)
         self.P_act[:NE, :NE] = self.P
         self.P_act[NE:, NE:] = np.diag(self._slow_var)
+        self._pairs = _InnovationPairs([f'ins.{f}' for f in FIELDS['ins']]
+                                       + ['wheels.front_speed'], len(self.P_act))
         self._q_act = np.diag([(p.accel_noise_std or p.accel_std) ** 2] * 2
                               + [(p.gyro_noise_std or p.gyro_std) ** 2])
         self.t = -math.inf                 # the EKF's time (the fusion horizon) [s]
@@ -507,6 +571,7 @@ class Estimator:
             self._predict_to(s.stamp)
             (self._ins_update if s.unit == 'ins' else self._front_wheel_update)(s)
         self._predict_to(horizon)
+        self._pairs.end_step()
         state = self._output(now)
         self.step_times.append(time.perf_counter() - t0)
         return state
@@ -558,10 +623,22 @@ class Estimator:
         out[E.Y] += 0.5 * h * (x[E.VX] * s0 + x[E.VY] * c0 + out[E.VX] * s1 + out[E.VY] * c1)
         return out
 
-    def _propagate(self, h: float) -> None:
+    @staticmethod
+    def _input(t0: float, t1: float, held, following):
+        """The IMU input over ``[t0, t1]``: the mean of the straight line between the samples
+        ``held`` and ``following`` (``held`` itself past the newest sample). Holding each sample
+        until the next lags the heading by h/2 of every change of the yaw rate (~2 mrad in a
+        drift's entry, four times the INS heading's noise), the velocity likewise."""
+        if following is None or following[0] <= held[0]:
+            return held
+        w = 0.5 * (t0 + t1 - 2.0 * held[0]) / (following[0] - held[0])
+        return tuple(a + w * (b - a) for a, b in zip(held, following))
+
+    def _propagate(self, h: float, u=None) -> None:
         if h <= 0.0:
             return
-        p, x, u = self.p, self.x, self._u
+        p, x = self.p, self.x
+        u = self._u if u is None else u
         r = u[3] - x[E.B_R]
         c, s = math.cos(x[E.PSI]), math.sin(x[E.PSI])
         F = np.eye(NE)
@@ -588,24 +665,30 @@ class Estimator:
             if hyp.s is not None:
                 hyp.s = F @ hyp.s
         P_act = self.P_act
+        A = np.zeros(P_act.shape)   # the actual error's transition
+        A[:NE, :NE] = F
         if self._slow:   # the slow errors decay as first-order Gauss-Markov processes
             phi = np.exp(-h / self._slow_tau)
+            A[NE:, NE:] = np.diag(phi)
             P_act[:NE, NE:] = F @ P_act[:NE, NE:] * phi
             P_act[NE:, :NE] = P_act[:NE, NE:].T
             P_act[NE:, NE:] *= np.outer(phi, phi)
             P_act[NE:, NE:] += np.diag(self._slow_var * (1.0 - phi * phi))
         P_act[:NE, :NE] = F @ P_act[:NE, :NE] @ F.T + Q_act
+        self._pairs.transition(A)
 
     def _predict_to(self, t: float) -> None:
-        """Advance the EKF to ``t`` on the IMU samples in between (each held until the next)."""
-        for sample in list(self._imu):
+        """Advance the EKF to ``t`` on the IMU samples in between (linear between them)."""
+        samples = list(self._imu)
+        for sample in samples:
             if self.t + 1e-9 < sample[0] <= t + 1e-9:
-                self._propagate(sample[0] - self.t)
+                self._propagate(sample[0] - self.t, self._input(self.t, sample[0], self._u, sample))
                 self.t, self._u = sample[0], sample
                 for hyp in self._steps:
                     if hyp.s is None and abs(hyp.onset - sample[0]) < 1e-9:
                         hyp.start()
-        self._propagate(t - self.t)
+        following = next((s for s in samples if s[0] > self.t + 1e-9), None)
+        self._propagate(t - self.t, self._input(self.t, t, self._u, following))
         self.t = max(self.t, t)
 
     def _scalar_update(self, name: str, z: float, h: float, H: np.ndarray, R: float,
@@ -635,10 +718,15 @@ class Estimator:
         steps = [hyp for hyp in self._steps if hyp.s is not None]
         for hyp in steps:
             hyp.evidence(nu, H, S_act * mon.noise_scale_act)
+        pair = self._pairs.index.get(name)
+        if pair is not None:   # Var(NIS) = 2, Cov(NIS_i, NIS_j) = 2 Cov(nu_i, nu_j)^2 / S_i S_j
+            mon.nis_var += 2.0 + 4.0 * self._pairs.past(pair, H_act) / S_act
         verdict = mon.judge(nu * nu / S_test, nu / math.sqrt(S_test), self.t, nu * nu / S_act)
         if verdict in ('reject', 'jump'):
             if verdict == 'jump':
                 self._event(name, 'jump')
+            if pair is not None:   # not used: its covariance with the error is P_act H'
+                self._pairs.add(pair, PH_act, S_act)
             self._decide_steps()
             return verdict
         pose = name in ('ins.x', 'ins.y', 'ins.yaw')   # a GNSS error is slow: no bias test
@@ -656,6 +744,9 @@ class Estimator:
         K_act[:NE] = K
         KPH = np.outer(K_act, PH_act)
         self.P_act = self.P_act - KPH - KPH.T + S_act * np.outer(K_act, K_act)
+        self._pairs.update(K_act, H_act)
+        if pair is not None:   # this innovation's covariance with the error: Cov(e+, nu)
+            self._pairs.add(pair, PH_act - K_act * S_act, S_act)
         for hyp in steps:   # the update corrects part of the error a step would have left
             hyp.s = hyp.s - K * float(H @ hyp.s)
         self._decide_steps()
@@ -870,7 +961,7 @@ class Estimator:
         x, u, t = self.x.copy(), self._u, self.t
         for sample in self._imu:
             if t + 1e-9 < sample[0] <= now + 1e-9:
-                x = self._f(x, u, sample[0] - t)
+                x = self._f(x, self._input(t, sample[0], u, sample), sample[0] - t)
                 t, u = sample[0], sample
         x = self._f(x, u, max(0.0, now - t))
         vx, vy = x[E.VX], x[E.VY]
@@ -905,14 +996,21 @@ class Estimator:
         """Forget the NIS and step-time records: they grow with every sample (a node reports
         and clears them once a second)."""
         self.step_times.clear()
+        self._pairs.clear()
         for mon in self.monitors.values():
             mon.nis.clear()
+            mon.nis_var = 0.0
 
     def nis_summary(self, intervals: bool = True) -> dict[str, dict]:
         """Per channel: samples, mean NIS, the share within the 95 % chi^2(1) bound, and (with
         ``intervals``) the 95 % interval of the mean of a consistent filter's NIS for that many
-        samples, counted as independent ones (``n_eff``: successive innovations are
-        correlated; ~60 us a channel, which a node's periodic status need not pay)."""
+        samples, counted as ``n_eff`` independent ones (successive innovations are correlated).
+
+        For the EKF's aiding channels ``n_eff`` comes from the covariances of the channel's
+        innovations with each other that the actual covariance implies (``interval_from``
+        'model': the INS's slow errors correlate them over seconds, which one run's own series
+        cannot show); for the others from the series' autocorrelation ('samples', ~60 us a
+        channel, which a node's periodic status need not pay)."""
         out = {}
         for name, mon in self.monitors.items():
             if mon.nis:
@@ -920,8 +1018,12 @@ class Estimator:
                 out[name] = {'n': int(nis.size), 'mean': float(nis.mean()),
                              'within_95': float(np.mean(nis <= CHI2_1_95))}
                 if intervals:
-                    n_eff = effective_samples(nis)
-                    out[name].update(n_eff=n_eff, interval_95=mean_nis_interval(n_eff))
+                    if mon.nis_var > 0.0:
+                        n_eff, source = 2.0 * nis.size ** 2 / mon.nis_var, 'model'
+                    else:
+                        n_eff, source = effective_samples(nis), 'samples'
+                    out[name].update(n_eff=n_eff, interval_95=mean_nis_interval(n_eff),
+                                     interval_from=source)
         return out
 
 
