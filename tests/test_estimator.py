@@ -411,6 +411,9 @@ def test_the_mean_nis_interval_knows_the_slow_errors():
     assert nis['imu.r']['interval_from'] == 'samples'
     est.clear_records()
     assert est.nis_summary() == {} and est.monitors['ins.x'].nis_var == 0.0
+    lean, *_ = drive(10.0, estimator=Estimator(VEHICLE, PARAMS, intervals=False))   # a node's
+    np.testing.assert_array_equal(lean.x, est.x)
+    assert lean.nis_summary()['ins.x']['interval_from'] == 'samples'
 
 
 def test_the_pose_prediction_stays_on_the_arc():

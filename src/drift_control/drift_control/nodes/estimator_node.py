@@ -30,7 +30,8 @@ class EstimatorNode(Node):
         estimator_set = [o for o in self.declare_parameter('estimator_set', ['']).value if o]
         setup = load_setup(cfg, scenario, vehicle or None, overrides, with_map=False)
         self._stepper = FrameStepper(build_estimator(
-            kind, setup.vehicle, setup.config / 'estimator.yaml', estimator_set))
+            kind, setup.vehicle, setup.config / 'estimator.yaml', estimator_set,
+            intervals=False))   # its status reports the NIS without intervals
         self._epoch = None      # whole seconds taken off every stamp (wall-clock stamps)
         self._log = StepperLog(self.get_logger())
         reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)   # every frame

@@ -68,7 +68,7 @@ class NmpcNode(Node):
         if source == 'sensors':
             self._in_process(setup, build_estimator(kind, setup.vehicle,
                                                     setup.config / 'estimator.yaml',
-                                                    estimator_set))
+                                                    estimator_set, intervals=False))
             trigger = 'sensors'
         # under sim time the simulator waits for us: wait for the reference of this very state
         # (deterministic); in real time at most a few ms, so a late reference never stalls us
