@@ -3,6 +3,7 @@
 
     .venv/bin/python scripts/estimator_eval.py --seeds 0 1 2 --out runs/estimator_eval.json
     .venv/bin/python scripts/estimator_eval.py --seeds 0 --fault ins:dropout:30:31
+    .venv/bin/python scripts/estimator_eval.py --synthetic 55 --seeds $(seq 0 59)
 
 Per seed, one run each of (a) the plant's own measurement model (the default), (b) the realistic
 sensors handed to the NMPC as their newest samples, (c) the realistic sensors through the EKF;
@@ -10,6 +11,12 @@ prints the NMPC torque request's std and mean |change| per 20 ms cycle in the st
 sideslip RMS error against the reference, the error of the sideslip the controller saw, the
 largest sideslip error in a fault window, and the estimator's NIS, events and cost per step.
 Runs one simulation at a time.
+
+``--synthetic SECONDS``: no closed loop; a steady drift the EKF's model describes exactly
+(``drift_sim.synthetic``) through the realistic sensors, one run per seed, and over the seeds
+each channel's mean NIS, its spread from run to run against the spread the runs' intervals
+imply, and how many runs' means fall within their interval (a consistency check of the filter
+and of its intervals).
 """
 from __future__ import annotations
 
@@ -74,6 +81,37 @@ def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor
     return row
 
 
+def synthetic_consistency(seconds, seeds, vehicle, estimator_set=(), sensor_set=()):
+    """The NIS summaries of the synthetic drift, one per seed."""
+    from drift_control.estimator import Estimator, load_estimator_params
+    from drift_control.params import config_dir, load_vehicle
+    from drift_sim import synthetic
+    from drift_sim.sensors import Sensors, load_sensor_params
+    car = load_vehicle(vehicle or 'm3_competition')
+    params = load_estimator_params(config_dir() / 'estimator.yaml', estimator_set)
+    sensor_params = load_sensor_params('realistic', overrides=sensor_set)
+    out = []
+    for seed in seeds:
+        est = Estimator(car, params)
+        synthetic.drive(Sensors(sensor_params, 0.01, seed), est, seconds,
+                        lambda t: synthetic.circle(t, car))
+        out.append({'seed': seed, 'nis': est.nis_summary()})
+    return out
+
+
+def print_consistency(rows) -> None:
+    print(f'{"channel":22s} {"mean NIS":>9s} {"(s.e.)":>7s} {"spread":>7s} {"implied":>8s}  within')
+    for name in rows[0]['nis']:
+        means = np.array([r['nis'][name]['mean'] for r in rows])
+        implied = np.mean([math.sqrt(2.0 / r['nis'][name]['n_eff']) for r in rows])
+        within = sum(lo <= r['nis'][name]['mean'] <= hi
+                     for r in rows for lo, hi in [r['nis'][name]['interval_95']])
+        spread = means.std(ddof=1) if len(means) > 1 else float('nan')
+        print(f'{name:22s} {means.mean():9.3f} {spread / math.sqrt(len(means)):7.3f} '
+              f'{spread:7.3f} {implied:8.3f}  {within}/{len(rows)} '
+              f'({rows[0]["nis"][name]["interval_from"]})')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--scenario', default='steady_dry')
@@ -87,8 +125,24 @@ def main(argv=None) -> int:
                         help='override a key of config/estimator.yaml for (c)')
     parser.add_argument('--sensor-set', action='append', default=[], metavar='KEY=VALUE',
                         help='override a key of the sensor set for (b) and (c)')
+    parser.add_argument('--synthetic', type=float, metavar='SECONDS',
+                        help='the synthetic drift instead of the closed loop, this long')
     parser.add_argument('--out', help='write the rows here (JSON)')
     args = parser.parse_args(argv)
+    if args.synthetic is not None:
+        if not args.synthetic > 0:
+            parser.error('--synthetic: a duration > 0 s')
+        try:
+            rows = synthetic_consistency(args.synthetic, args.seeds, args.vehicle,
+                                         args.estimator_set, args.sensor_set)
+        except ParamError as err:
+            print(f'estimator_eval: {err}', file=sys.stderr)
+            return 2
+        print_consistency(rows)
+        if args.out:
+            with open(args.out, 'w') as fh:
+                json.dump(rows, fh, indent=1)
+        return 0
     rows = []
     for seed in args.seeds:
         for config in args.configs:

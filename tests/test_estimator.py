@@ -14,6 +14,7 @@ from drift_control.estimator import (FIELDS, E, Estimator, LatestSamples, _Innov
                                      repeat_count, repeat_probability)
 from drift_control.params import ParamError, config_dir, load_vehicle
 from drift_control.signals import Validity, VehicleState
+from drift_sim import synthetic
 from drift_sim.sensors import Sensors, load_sensor_params, parse_fault
 
 DT = 0.01
@@ -22,29 +23,15 @@ PARAMS = load_estimator_params(config_dir() / 'estimator.yaml')
 SENSORS = load_sensor_params('realistic')
 
 
-def circle(t, V=9.0, beta=-0.5, r=0.6, r_wave=0.0):
-    """A left drift on a circle (yaw rate ``r + r_wave sin(2t)``), kinematically consistent."""
-    r_t = r + r_wave * math.sin(2.0 * t)
-    yaw = r * t + r_wave * (1.0 - math.cos(2.0 * t)) / 2.0
-    vx, vy = V * math.cos(beta), V * math.sin(beta)
-    R = V / r
-    delta = -0.1
-    w_F = (vx * math.cos(delta) + (vy + VEHICLE.a * r_t) * math.sin(delta)) / VEHICLE.R_F
-    return VehicleState(stamp=round(t, 9), V=V, beta=beta, r=r_t, vx=vx, vy=vy, ax=-r_t * vy,
-                        ay=r_t * vx, wheel_speeds=(w_F, w_F, 40.0, 40.0), delta=delta,
-                        drive_torque=2000.0, x=R * math.sin(yaw + beta),
-                        y=-R * math.cos(yaw + beta), yaw=math.remainder(yaw, 2.0 * math.pi))
+def circle(t, **kwargs):
+    return synthetic.circle(t, VEHICLE, **kwargs)
 
 
 def drive(seconds, faults=(), seed=0, truth=circle, estimator=None):
     """Run sensors and estimator over a synthetic drive; (estimator, sensors, truths, states)."""
     sensors = Sensors(SENSORS, DT, seed, [parse_fault(f) for f in faults])
     est = estimator or Estimator(VEHICLE, PARAMS)
-    truths, states = [truth(0.0)], [est.step(sensors.reset(truth(0.0)), 0.0)]
-    for k in range(1, int(round(seconds / DT)) + 1):
-        t = round(k * DT, 9)
-        truths.append(truth(t))
-        states.append(est.step(sensors.step(truths[-1]), t))
+    truths, states = synthetic.drive(sensors, est, seconds, truth, DT)
     return est, sensors, truths, states
 
 
