@@ -403,6 +403,19 @@ def test_the_mean_nis_interval_knows_the_slow_errors():
     assert lean.nis_summary()['ins.x']['interval_from'] == 'samples'
 
 
+def test_the_imu_input_between_samples_held_or_linear():
+    """Over [0.012, 0.02] s between samples at 0.01 and 0.02 s: the first sample held, or the
+    straight line's mean there (yaw rate 0.5 -> 0.7 rad/s: 0.62); past the newest, held."""
+    held, following = (0.01, 1.0, 2.0, 0.5), (0.02, 1.0, 4.0, 0.7)
+    assert Estimator(VEHICLE, PARAMS)._input(0.012, 0.02, held, following) == held
+    linear = Estimator(VEHICLE, replace(PARAMS, imu_input='linear'))
+    np.testing.assert_allclose(linear._input(0.012, 0.02, held, following),
+                               (0.016, 1.0, 3.2, 0.62))
+    assert linear._input(0.02, 0.025, following, None) == following
+    with pytest.raises(ParamError, match='estimator.imu_input'):
+        load_estimator_params(config_dir() / 'estimator.yaml', ['imu_input=cubic'])
+
+
 def test_the_pose_prediction_stays_on_the_arc():
     """Dead reckoning on exact IMU samples around the drift circle: after 2 s (200 steps) the
     pose is within 2 mm of the circle (a start-of-step heading ends ~5 cm inside it)."""

@@ -124,6 +124,7 @@ class EstimatorParams:
     step_span: float = 0.3      # ... undecided this long after the jump: dismissed [s]
     noise_learning_time: float = 0.0    # the fault tests learn how much noisier than its
                                 # figures each channel is over this long (0: never) [s]
+    imu_input: str = 'hold'     # between IMU samples: 'hold' each until the next, or 'linear'
 
     def __post_init__(self):
         for name in ('horizon_delay', 'accel_std', 'gyro_std', 'yaw_jerk', 'accel_bias_std0',
@@ -146,6 +147,8 @@ class EstimatorParams:
             require(getattr(self, name) >= 0, f'estimator.{name}', 'must be >= 0')
         require(0 < self.frozen_false_rate < 0.01, 'estimator.frozen_false_rate',
                 'must be in (0, 0.01)')
+        require(self.imu_input in ('hold', 'linear'), 'estimator.imu_input',
+                f"{self.imu_input!r} is not 'hold' or 'linear'")
         require(self.wheel_resolution >= 0, 'estimator.wheel_resolution',
                 'must be >= 0 (0: unquantised)')
         for name in ('persist', 'bias_window', 'stuck_samples'):
@@ -645,14 +648,14 @@ class Estimator:
         out[E.Y] += 0.5 * h * (x[E.VX] * s0 + x[E.VY] * c0 + out[E.VX] * s1 + out[E.VY] * c1)
         return out
 
-    @staticmethod
-    def _input(t0: float, t1: float, held, following):
-        """The IMU input over ``[t0, t1]``: the mean of the straight line between the samples
-        ``held`` and ``following`` (``held`` itself past the newest sample). Holding each sample
-        until the next lags the heading by h/2 of every change of the yaw rate (5 mrad over an
-        entry from 0 to 1 rad/s at 100 Hz, before the INS corrects it: ten times its heading's
-        noise), the velocity likewise."""
-        if following is None or following[0] <= held[0]:
+    def _input(self, t0: float, t1: float, held, following):
+        """The IMU input over ``[t0, t1]``: ``held``, or with ``imu_input: linear`` the mean of
+        the straight line between the samples ``held`` and ``following`` (``held`` itself past
+        the newest sample). For a unit that samples the car at an instant, holding lags the
+        heading by h/2 of every change of the yaw rate (5 mrad over an entry from 0 to 1 rad/s
+        at 100 Hz, before the INS corrects it), the velocity likewise; a unit that averages
+        over its interval is nearer the hold."""
+        if self.p.imu_input == 'hold' or following is None or following[0] <= held[0]:
             return held
         w = 0.5 * (t0 + t1 - 2.0 * held[0]) / (following[0] - held[0])
         return tuple(a + w * (b - a) for a, b in zip(held, following))
