@@ -112,6 +112,19 @@ def print_consistency(rows) -> None:
               f'({rows[0]["nis"][name]["interval_from"]})')
 
 
+def write_rows(path, rows) -> int:
+    """The rows as JSON to ``path`` (none: nothing); an unwritable path is one line, exit 2."""
+    if not path:
+        return 0
+    try:
+        with open(path, 'w') as fh:
+            json.dump(rows, fh, indent=1, default=lambda v: None if not math.isfinite(v) else v)
+    except OSError as err:
+        print(f'estimator_eval: --out {path}: {err.strerror}', file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--scenario', default='steady_dry')
@@ -139,10 +152,7 @@ def main(argv=None) -> int:
             print(f'estimator_eval: {err}', file=sys.stderr)
             return 2
         print_consistency(rows)
-        if args.out:
-            with open(args.out, 'w') as fh:
-                json.dump(rows, fh, indent=1)
-        return 0
+        return write_rows(args.out, rows)
     rows = []
     for seed in args.seeds:
         for config in args.configs:
@@ -164,10 +174,7 @@ def main(argv=None) -> int:
                     print(f'    {name:22s} {v["mean"]:6.2f} [{lo:.2f}, {hi:.2f}] {side:6s} '
                           f'{v["within_95"]:.3f}')
                 print('  events:', row['events'][:12], f'({len(row["events"])} in all)')
-    if args.out:
-        with open(args.out, 'w') as fh:
-            json.dump(rows, fh, indent=1, default=lambda v: None if not math.isfinite(v) else v)
-    return 0
+    return write_rows(args.out, rows)
 
 
 if __name__ == '__main__':

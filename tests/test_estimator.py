@@ -492,6 +492,8 @@ def test_frame_stepper_starts_over_after_absurd_samples(value, failure):
     (['--vehicle', 'no_such'], "vehicle 'no_such'"),
     (['--scenario', 'no_such'], 'no_such.yaml'),
     (['--estimator-set', 'gate=-1'], 'estimator.gate'),
+    (['--synthetic', '1', '--vehicle', 'no_such'], "vehicle 'no_such'"),
+    (['--synthetic', '0.5', '--out', '/no_such_dir/rows.json'], '--out /no_such_dir/rows.json'),
 ])
 def test_estimator_eval_refuses_bad_input_in_one_line(argv, message, capsys):
     rc = load_script('estimator_eval').main(['--configs', 'c', *argv])
