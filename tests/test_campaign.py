@@ -159,6 +159,17 @@ def test_the_store_keeps_finished_runs_and_drops_a_half_written_line(tmp_path):
         RunStore(path)
 
 
+def test_the_store_keeps_a_whole_last_row_without_its_newline(tmp_path):
+    path = tmp_path / 'runs.jsonl'
+    path.write_text(json.dumps(_row('a', {}) | {'outcome': HELD}) + '\n'
+                    + json.dumps(_row('b', {}) | {'outcome': HELD}))   # edited by hand
+    store = RunStore(path)
+    assert 'a' in store and 'b' in store
+    store.add(_row('c', {}) | {'outcome': HELD})
+    assert [json.loads(line)['key'] for line in path.read_text().splitlines()] == ['a', 'b', 'c']
+    assert len(RunStore(path)) == 3
+
+
 def test_the_summary_counts_each_failure_mode_with_when_and_where():
     held = {'spun': False, 'supervisor_trip_s': None, 'beta_rms_error_deg': 0.3,
             'max_abs_e_y_m': 0.8, 'event_t_s': 30.0, 'event_s_m': 200.0}

@@ -3,8 +3,9 @@
 A row carries its run's whole configuration and its config hash (``key``); a campaign skips the
 jobs whose key has a row, so rerunning an interrupted command resumes it. Each row is flushed
 and synced before the next run is looked at: a kill loses at most the run in flight. A line cut
-short by a kill mid-write is no finished run and is dropped on the next append. Rows of runs
-that ended in an error are run again; the newest row of a key wins.
+short by a kill mid-write is no finished run and is dropped on the next append; a last row
+that is whole but lacks its newline (an edited file) is kept. Rows of runs that ended in an
+error are run again; the newest row of a key wins.
 """
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ class RunStore:
     def __init__(self, path: str | os.PathLike | None = None):
         self.path = Path(path) if path else None
         self._rows: dict[str, dict] = {}
-        self._end = 0       # bytes up to the last complete line
+        self._end = 0       # bytes up to the last complete row
+        self._newline = b''  # what the next append writes first
         if self.path is not None and self.path.exists():
             self._load()
 
@@ -44,6 +46,14 @@ class RunStore:
                 raise ParamError(f'{self.path}:{number}: not a row of a campaign store (a JSON '
                                  'object with a "key")') from None
             self._rows[key] = row
+        tail = data[self._end:]
+        if tail.strip():
+            try:
+                row = json.loads(tail)
+                self._rows[row['key']] = row
+            except (ValueError, KeyError, TypeError):
+                return       # cut short by a kill: dropped on the next append
+            self._end, self._newline = len(data), b'\n'
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -71,10 +81,10 @@ class RunStore:
         with open(self.path, 'ab') as fh:
             if fh.tell() > self._end:      # a half-written line of a killed campaign
                 fh.truncate(self._end)
-            fh.write(line.encode())
+            fh.write(self._newline + line.encode())
             fh.flush()
             os.fsync(fh.fileno())
-            self._end = fh.tell()
+            self._end, self._newline = fh.tell(), b''
 
 
 __all__ = ['RunStore']
