@@ -13,6 +13,7 @@ import time
 import casadi as ca
 import numpy as np
 
+from drift_control.cli_args import count
 from drift_control.params import ParamError, load_vehicle
 from drift_control.vehicle import NTHETA, NU, NX, X, VehicleModel
 
@@ -30,7 +31,7 @@ def per_call_us(fun, args, repeat: int) -> float:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--repeat', type=int, default=2000)
+    parser.add_argument('--repeat', type=count, default=2000, help='calls per batch')
     parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: defaults.yaml\'s)')
     args = parser.parse_args(argv)
     try:

@@ -18,7 +18,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from drift_control.assembly import map_file
-from drift_control.eqmap import GridParams, build_map, load_map_params, save_map
+from drift_control.cli_args import count, output_problem
+from drift_control.eqmap import GridParams, build_map, load_map_params, map_paths, save_map
 from drift_control.params import ParamError, config_dir, load_surface, load_vehicle, vehicle_file
 
 
@@ -36,7 +37,7 @@ def main(argv=None) -> int:
     ap.add_argument('--surface', choices=('dry', 'wet', 'all'), default='all')
     ap.add_argument('--beta-deg', type=_range, help='sideslip grid start:stop:step [deg]')
     ap.add_argument('--radius', type=_range, help='radius grid start:stop:step [m]')
-    ap.add_argument('--jobs', type=int, default=os.cpu_count() or 1, help='worker processes')
+    ap.add_argument('--jobs', type=count, default=os.cpu_count() or 1, help='worker processes')
     ap.add_argument('--config-dir', type=Path, default=None,
                     help='config directory (default: the checkout\'s config/)')
     ap.add_argument('--out', type=Path, help='output directory (default: <maps>/<vehicle>/)')
@@ -59,6 +60,12 @@ def main(argv=None) -> int:
         print(f'build_maps: {err}', file=sys.stderr)
         return 2
     name = vfile.stem
+    targets = [args.out / s.name if args.out else map_file(name, s.name, cfg) for s in surfaces]
+    for target in targets:   # before minutes of solving
+        problem = output_problem(map_paths(target)[0])
+        if problem is not None:
+            print(f'build_maps: {problem}', file=sys.stderr)
+            return 2
     for surface in surfaces:
         n_rows = len(grid.radius())
         with tqdm(total=n_rows, desc=f'{name} {surface.name} (mu {surface.mu})',

@@ -27,6 +27,7 @@ import sys
 import time
 from pathlib import Path
 
+from drift_control.cli_args import output_problem, write_text
 from drift_control.params import ParamError, config_dir, vehicle_names
 from drift_control.scenario import control_scenario_names
 from drift_sim.campaign import campaign_jobs, default_config, run_jobs
@@ -80,6 +81,9 @@ def main(argv=None) -> int:
         if getattr(args, name) < least:
             return _fail(f"--{name.replace('_', '-')}: expected an integer >= {least}, "
                          f'got {getattr(args, name)}')
+    problem = _output_problem(args)
+    if problem is not None:
+        return _fail(problem)
     config = default_config(args.config_dir)
     try:
         seeds = parse_seeds(args.seeds)
@@ -121,12 +125,22 @@ def main(argv=None) -> int:
     if todo:
         print(f'campaign: {todo} run(s) in {wall:.0f} s ({wall / todo:.1f} s a run)',
               file=sys.stderr)
-    if args.summary:
-        Path(args.summary).write_text(f'# Campaign: {len(jobs)} runs\n\n`{_command(argv)}`'
-                                      f'\n\n{text}')
-    if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(summary, indent=2) + '\n')
+    for path, content in ((args.summary, f'# Campaign: {len(jobs)} runs\n\n`{_command(argv)}`'
+                                         f'\n\n{text}'),
+                          (args.summary_json, json.dumps(summary, indent=2) + '\n')):
+        problem = write_text(path, content) if path else None
+        if problem is not None:   # the runs are in the store: the same command writes it
+            return _fail(problem)
     return 1 if any(row['outcome'] == ERROR for row in rows) else 0
+
+
+def _output_problem(args) -> str | None:
+    """Why the store or a summary path cannot be written (before any run), or None."""
+    if args.summary and args.summary_json and Path(args.summary) == Path(args.summary_json):
+        return '--summary and --summary-json name the same file'
+    return (output_problem(args.store)
+            or (output_problem(args.summary, [args.store]) if args.summary else None)
+            or (output_problem(args.summary_json, [args.store]) if args.summary_json else None))
 
 
 def _run(jobs, todo, store, args, header: str) -> list[dict]:

@@ -27,8 +27,10 @@ import sys
 
 import numpy as np
 
+from drift_control import cli_args
 from drift_control.params import ParamError
 from drift_sim.closed_loop import run_closed_loop
+from drift_sim.sensors import parse_fault
 
 CONFIGS = {'a': {}, 'b': {'sensors': 'realistic', 'estimator': 'none'},
            'c': {'sensors': 'realistic', 'estimator': 'ekf'}}
@@ -64,7 +66,8 @@ def evaluate(scenario, seed, config, window, faults=(), estimator_set=(), sensor
     keep = (t >= window[0]) & (t < window[1])
     beta_ref = data['beta_ref']
     for fault in faults:
-        start, end = (float(v) for v in fault.split(':')[2:4])
+        parsed = parse_fault(fault)
+        start, end = parsed.start, parsed.end
         inside = (t >= start) & (t < end + 0.5)
         row[f'max_beta_error_deg {fault}'] = float(np.degrees(
             np.nanmax(np.abs(data['beta'][inside] - beta_ref[inside]))))
@@ -129,22 +132,33 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--scenario', default='steady_dry')
     parser.add_argument('--vehicle', help="config/vehicle/<name>.yaml (default: the scenario's)")
-    parser.add_argument('--seeds', type=int, nargs='+', default=[0])
+    parser.add_argument('--seeds', type=cli_args.seed, nargs='+', default=[0])
     parser.add_argument('--configs', nargs='+', default=list(CONFIGS), choices=list(CONFIGS))
-    parser.add_argument('--window', type=float, nargs=2, default=(20.0, 55.0))
+    parser.add_argument('--window', type=cli_args.seconds, nargs=2, default=(20.0, 55.0),
+                        metavar=('START', 'END'), help='the steady part [s] (default 20 55)')
     parser.add_argument('--fault', action='append', default=[],
                         help='a sensor fault for (b) and (c), e.g. ins:dropout:30:31')
     parser.add_argument('--estimator-set', action='append', default=[], metavar='KEY=VALUE',
                         help='override a key of config/estimator.yaml for (c)')
     parser.add_argument('--sensor-set', action='append', default=[], metavar='KEY=VALUE',
                         help='override a key of the sensor set for (b) and (c)')
-    parser.add_argument('--synthetic', type=float, metavar='SECONDS',
+    parser.add_argument('--synthetic', type=cli_args.positive, metavar='SECONDS',
                         help='the synthetic drift instead of the closed loop, this long')
     parser.add_argument('--out', help='write the rows here (JSON)')
     args = parser.parse_args(argv)
+    if not args.window[0] < args.window[1]:
+        parser.error(f'--window: START must be before END, got {args.window[0]:g} '
+                     f'{args.window[1]:g}')
+    try:
+        for fault in args.fault:
+            parse_fault(fault)
+    except ParamError as err:
+        parser.error(str(err))
+    problem = cli_args.output_problem(args.out) if args.out else None
+    if problem is not None:
+        print(f'estimator_eval: {problem}', file=sys.stderr)
+        return 2
     if args.synthetic is not None:
-        if not args.synthetic > 0:
-            parser.error('--synthetic: a duration > 0 s')
         try:
             rows = synthetic_consistency(args.synthetic, args.seeds, args.vehicle,
                                          args.estimator_set, args.sensor_set)

@@ -21,6 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from drift_control.cli_args import positive
 from drift_control.params import (ParamError, config_dir, load_surface, load_vehicle,
                                   vehicle_file)
 from drift_control.tir import load_tir
@@ -33,7 +34,7 @@ def main(argv=None) -> int:
     parser.add_argument('--vehicle', required=True, help='name under config/vehicle')
     parser.add_argument('--config-dir', default=str(config_dir()))
     parser.add_argument('--axle', choices=('front', 'rear', 'both'), default='both')
-    parser.add_argument('--wet-mu', type=float, default=None,
+    parser.add_argument('--wet-mu', type=positive, default=None,
                         help='wet friction scale of the report (default: surfaces.yaml wet)')
     parser.add_argument('--dry-run', action='store_true', help='report only, write nothing')
     args = parser.parse_args(argv)

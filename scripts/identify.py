@@ -55,6 +55,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from drift_control import sysid
+    from drift_control.cli_args import output_problem
     from drift_control.powertrain_fit import fit_powertrain
     from drift_control.prediction import predict
     from drift_control.params import (ParamError, config_dir, load_surface, load_vehicle,
@@ -69,8 +70,11 @@ def main(argv=None) -> int:
     if not (bag / 'metadata.yaml').is_file():
         return _fail(f'{bag}: not a bag directory (no metadata.yaml)')
     names = list(sysid.DEFAULT_FIT)
-    if args.fit:
+    if args.fit is not None:
         names = [n.strip() for n in args.fit.split(',') if n.strip()]
+        if not names:
+            return _fail(f'--fit: no parameter named in {args.fit!r}; fittable: '
+                         f'{", ".join(sysid.FITTABLE)}')
     if args.fit_inertia and 'I_z' not in names:
         names.append('I_z')
     unknown = [n for n in names if n not in sysid.FITTABLE]
@@ -90,6 +94,13 @@ def main(argv=None) -> int:
         messages = read_bag(bag, topics=[topic, COMMAND])
     except (ParamError, BagDamagedError, ValueError, OSError) as err:
         return _fail(str(err))
+    stem = f'{args.vehicle}_identified'
+    report = Path(args.report) if args.report else bag.with_name(bag.name + '_sysid')
+    out = Path(args.out) if args.out else report / f'{stem}.yaml'
+    problem = (output_problem(report, [bag, vfile], directory=True)
+               or output_problem(out, [bag, vfile]))
+    if problem is not None:   # before the fit: the vehicle file read and the bag stay as they are
+        return _fail(problem)
     run = series_from_bag(messages)
     state = run.truth if args.truth else run.state
     if len(state.get('t', ())) < 100:
@@ -104,9 +115,6 @@ def main(argv=None) -> int:
     except sysid.IdentificationError as err:
         return _fail(str(err), 1)
 
-    stem = f'{args.vehicle}_identified'
-    report = Path(args.report) if args.report else bag.with_name(bag.name + '_sysid')
-    out = Path(args.out) if args.out else report / f'{stem}.yaml'
     report.mkdir(parents=True, exist_ok=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     summary = _summary(bag, info, args, surface, mu, log, fit, fit_powertrain(log), pred_fit,

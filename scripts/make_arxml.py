@@ -38,6 +38,7 @@ from autosar_data.abstraction.communication import (
 from autosar_data.abstraction.datatype import (
     BaseTypeEncoding, CompuMethodContent, CompuScaleDirection, DataConstrType, TextTableEntry)
 
+from drift_control.cli_args import output_problem
 from drift_control.params import ParamError
 from drift_vehicle_bridge.arxml import autosar_start
 
@@ -115,13 +116,14 @@ def main(argv=None) -> int:
     parser.add_argument('--dbc', default=str(DBC), help='classic CAN DBC to mirror')
     parser.add_argument('--out', default=str(OUT), help='ARXML file to write')
     args = parser.parse_args(argv)
+    problem = output_problem(args.out, [args.dbc])
+    if problem is not None:
+        print(f'make_arxml: {problem}', file=sys.stderr)
+        return 2
     try:
         build(args.dbc, args.out)
-    except ParamError as err:
-        print(f'make_arxml: {err}', file=sys.stderr)
-        return 2
-    except OSError as err:
-        print(f'make_arxml: {err}', file=sys.stderr)
+    except (ParamError, OSError) as err:
+        print(f'make_arxml: {_one_line(err)}', file=sys.stderr)
         return 2
     print(f'wrote {args.out}')
     return 0

@@ -21,6 +21,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
+from drift_control.cli_args import output_problem
 from drift_control.params import ParamError, config_dir
 from drift_sim.population import load_population
 from drift_sim.store import RunStore
@@ -164,12 +165,19 @@ def main(argv=None) -> int:
         rows = RunStore(args.store).rows()
         if not rows:
             raise ParamError(f'{args.store}: no runs')
+        problem = output_problem(args.out, [args.store], directory=True)
+        if problem is not None:
+            raise ParamError(problem)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        pass_rates(campaign_summary(rows), out / 'pass_rate.png')
-        error_histograms(rows, out / 'errors.png')
-        mapped = failure_map(rows, out / 'failure_map.png', args.config_dir)
-    except ParamError as err:
+        try:
+            pass_rates(campaign_summary(rows), out / 'pass_rate.png')
+            error_histograms(rows, out / 'errors.png')
+            mapped = failure_map(rows, out / 'failure_map.png', args.config_dir)
+        except (KeyError, TypeError) as err:
+            raise ParamError(f'{args.store}: a row is not a finished run of a campaign '
+                             f'({type(err).__name__}: {err})') from None
+    except (ParamError, OSError) as err:
         print(f'plot_campaign: {err}', file=sys.stderr)
         return 2
     print(f'wrote {out}/pass_rate.png, errors.png'

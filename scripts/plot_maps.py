@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from drift_control.assembly import load_checked_map  # noqa: E402
+from drift_control.cli_args import positive  # noqa: E402
 from drift_control.eqmap import KINDS  # noqa: E402
 from drift_control.params import (ParamError, default_vehicle, load_surface,  # noqa: E402
                                   load_vehicle, vehicle_file)
@@ -93,7 +94,10 @@ def main(argv=None) -> int:
     ap.add_argument('--surface', choices=('dry', 'wet', 'all'), default='all')
     ap.add_argument('--radii', default='8,12,16,20,25,30,40', help='radii to draw [m]')
     args = ap.parse_args(argv)
-    radii = [float(r) for r in args.radii.split(',')]
+    try:
+        radii = [positive(r) for r in args.radii.split(',')]
+    except argparse.ArgumentTypeError as err:
+        ap.error(f'--radii: {err}')
     try:
         vehicle = vehicle_file(args.vehicle).stem
     except ParamError as err:

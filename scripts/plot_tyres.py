@@ -12,6 +12,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from drift_control.cli_args import output_problem  # noqa: E402
 from drift_control.params import ParamError, load_surface, load_vehicle, vehicle_file  # noqa: E402
 from drift_control.tyre import (combined_forces, front_forces, lateral_peak_slip,  # noqa: E402
                                 longitudinal_peak_slip)
@@ -22,6 +23,13 @@ def main(argv=None) -> int:
     parser.add_argument('--vehicle', help='config/vehicle/<name>.yaml (default: defaults.yaml\'s)')
     parser.add_argument('--out', default='docs/tyre_curves.png')
     args = parser.parse_args(argv)
+    out = Path(args.out)
+    if not out.suffix:   # matplotlib would add its default format's
+        out = out.with_suffix('.png')
+    problem = output_problem(out)
+    if problem is not None:
+        print(f'plot_tyres: {problem}', file=sys.stderr)
+        return 2
     try:
         vfile = vehicle_file(args.vehicle)
         vp = load_vehicle(vfile)
@@ -63,7 +71,6 @@ def main(argv=None) -> int:
         a.legend(fontsize=7)
     fig.suptitle(f'Controller tyre model (config/vehicle/{vfile.name})')
     fig.tight_layout()
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)
     print(f'wrote {out}')

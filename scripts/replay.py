@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from drift_control.cli_args import natural, nonnegative, output_problem, seconds, write_text
+
 STATE_TOPIC = '/vehicle/state'
 STATE_REPEAT = 0.2   # [s] as the lock-step simulator offers its first state again
 COMMAND_TOPIC = '/drift/command'
@@ -132,7 +134,15 @@ def publish(args) -> int:
               f'max |torque - recorded| {report["torque_max_abs_diff"]:.3g} Nm, '
               f'{report["mode_mismatches"]} mode mismatches')
         if args.json:
-            Path(args.json).write_text(json.dumps(report, indent=2))
+            return _write_json(args.json, report)
+    return 0
+
+
+def _write_json(path, data) -> int:
+    problem = write_text(path, json.dumps(data, indent=2))
+    if problem is not None:
+        print(f'replay: {problem}', file=sys.stderr)
+        return 2
     return 0
 
 
@@ -214,7 +224,7 @@ def rerun(args) -> int:
     for line in result.summary_lines():
         print(line)
     if args.json:
-        Path(args.json).write_text(json.dumps(result.to_dict(), indent=2))
+        return _write_json(args.json, result.to_dict())
     return 0
 
 
@@ -223,22 +233,23 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog=__doc__)
     parser.add_argument('bag', help='rosbag2 directory (metadata.yaml + .mcap)')
-    parser.add_argument('--rate', type=float, default=1.0, help='speed-up factor; 0 = no pacing')
+    parser.add_argument('--rate', type=nonnegative, default=1.0,
+                        help='speed-up factor; 0 = no pacing')
     parser.add_argument('--topics', nargs='*', help='only these topics (absolute names)')
     parser.add_argument('--clock', action='store_true',
                         help='publish /clock for nodes with use_sim_time: the bag\'s own if it '
                              'recorded one (a sim-time run), else from the log time')
-    parser.add_argument('--loop', type=int, default=1, metavar='N',
+    parser.add_argument('--loop', type=natural, default=1, metavar='N',
                         help='play N times (0: until stopped); each pass later in time, stamps '
                              'and /clock shifted, so time never runs backwards')
-    parser.add_argument('--start', type=float, default=0.0,
+    parser.add_argument('--start', type=seconds, default=0.0,
                         help='from this many seconds after the first message')
-    parser.add_argument('--end', type=float, default=None,
+    parser.add_argument('--end', type=seconds, default=None,
                         help='up to this many seconds after the first message')
     parser.add_argument('--lockstep', action='store_true',
                         help='publish /clock, wait per state for its command')
-    parser.add_argument('--step-timeout', type=float, default=1.0, help='lockstep wait [s]')
-    parser.add_argument('--discovery-timeout', type=float, default=5.0, help='[s]')
+    parser.add_argument('--step-timeout', type=seconds, default=1.0, help='lockstep wait [s]')
+    parser.add_argument('--discovery-timeout', type=seconds, default=5.0, help='[s]')
     parser.add_argument('--rerun', action='store_true', help='re-run the NMPC core offline')
     parser.add_argument('--control-mode', default='full', choices=('full', 'torque_only'))
     parser.add_argument('--surface', help='friction the NMPC assumes (default: the recorded '
@@ -249,6 +260,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if not (Path(args.bag) / 'metadata.yaml').exists():
         print(f'replay: {args.bag}: not a bag directory (no metadata.yaml)', file=sys.stderr)
+        return 2
+    problem = output_problem(args.json, [args.bag]) if args.json else None
+    if problem is not None:
+        print(f'replay: {problem}', file=sys.stderr)
         return 2
     return rerun(args) if args.rerun else publish(args)
 

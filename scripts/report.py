@@ -43,6 +43,15 @@ def main(argv=None) -> int:
         print(f'report: {bag}: neither a bag directory (metadata.yaml) nor an MDF4 file',
               file=sys.stderr)
         return 2
+    if args.dbc and not is_mdf:
+        print(f'report: --dbc decodes the bus logging of an MDF4 file; {bag} is a bag directory',
+              file=sys.stderr)
+        return 2
+    from drift_control.cli_args import output_problem
+    problem = output_problem(out, [bag, args.dbc], directory=True)
+    if problem is not None:
+        print(f'report: {problem}', file=sys.stderr)
+        return 2
     windows = transient_end = None
     from drift_control.params import ParamError
     from drift_control.scenario import load_scenario_spec

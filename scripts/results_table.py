@@ -23,6 +23,7 @@ import sys
 import time
 from pathlib import Path
 
+from drift_control.cli_args import output_problem, write_text
 from drift_control.params import ParamError, default_vehicle
 from drift_sim.campaign import campaign_jobs, run_jobs, scenario_vehicle
 from drift_sim.executor import ClusterError, make_executor
@@ -132,7 +133,9 @@ def main(argv=None) -> int:
     parser.add_argument('--seeds', default='0-9',
                         help='seeds of every row, e.g. 0-9 (default) or 0; the first one fills '
                         'the metric columns')
-    parser.add_argument('--only', help='comma-separated row labels or scenario names')
+    parser.add_argument('--only', action='append',
+                        help='row labels or scenario names, comma-separated or repeated (a '
+                        'label with a comma, e.g. "steady_dry, robustness", is taken whole)')
     parser.add_argument('--vehicle', help='only the rows of this vehicle (rows without a '
                         'vehicle= override run the scenario\'s)')
     parser.add_argument('--no-readme', action='store_true', help='only docs/results.md')
@@ -140,7 +143,11 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     runs = RUNS
     if args.only:
-        wanted = set(args.only.split(','))
+        known = {r[0] for r in RUNS} | {r[1] for r in RUNS}
+        wanted = set()
+        for value in args.only:
+            wanted.update({value} if value in known else
+                          {name.strip() for name in value.split(',') if name.strip()})
         unknown = wanted - {r[0] for r in RUNS} - {r[1] for r in RUNS}
         if unknown:
             parser.error(f'--only: no row or scenario {sorted(unknown)}')
@@ -157,6 +164,11 @@ def main(argv=None) -> int:
         parser.error(str(err))
     if args.jobs < 1:
         parser.error(f'--jobs: expected >= 1, got {args.jobs}')
+    problem = ((output_problem(args.store) if args.store else None)
+               or (output_problem(args.json, [args.store]) if args.json else None))
+    if problem is not None:
+        print(f'results_table: {problem}', file=sys.stderr)
+        return 2
     try:
         jobs = {run[0]: campaign_jobs([run[1]], [scenario_vehicle(run[1], run[2])], seeds,
                                       overrides=run[2]) for run in runs}
@@ -212,8 +224,11 @@ def main(argv=None) -> int:
             f'change per 20 ms cycle in the steady parts (issue 22), seed {seeds[0]}; "sensors + '
             f'EKF": seed {seeds[0]} once more through the realistic sensors and the state '
             f'estimator (docs/estimator.md).\n')
-    if args.json:
-        Path(args.json).write_text(json.dumps(all_metrics, indent=2, default=str))
+    problem = write_text(args.json, json.dumps(all_metrics, indent=2, default=str)) \
+        if args.json else None
+    if problem is not None:
+        print(f'results_table: {problem}', file=sys.stderr)
+        return 2
     if partial:   # a subset must not replace the whole table
         print(text)
         print('a subset of the rows: docs/results.md and README.md left as they are')

@@ -20,6 +20,7 @@ import json
 import sys
 import time
 
+from drift_control.cli_args import output_problem, write_text
 from drift_control.params import ParamError, config_dir, vehicle_file
 from drift_sim.campaign import campaign_jobs, default_config, run_jobs, scenario_vehicle
 from drift_sim.executor import ClusterError, make_executor
@@ -54,6 +55,11 @@ def main(argv=None) -> int:
             vehicle_file(args.vehicle, args.config_dir)
         except ParamError as err:
             parser.error(str(err))
+    problem = ((output_problem(args.store) if args.store else None)
+               or (output_problem(args.json, [args.store]) if args.json else None))
+    if problem is not None:
+        print(f'seed_sweep: {problem}', file=sys.stderr)
+        return 2
     config = default_config(args.config_dir)
     try:
         jobs = [job for sc in args.scenario for job in campaign_jobs(
@@ -82,12 +88,14 @@ def main(argv=None) -> int:
     print(f'{len(rows)} runs in {time.perf_counter() - t0:.0f} s on {args.jobs} process(es)'
           + (f"; overrides: {', '.join(args.set)}" if args.set else ''))
     if args.json:
-        with open(args.json, 'w') as f:
-            json.dump({'seeds': seeds, 'overrides': args.set, 'config_dir': args.config_dir,
-                       'vehicle': args.vehicle, 'summaries': summaries,
-                       'runs': [{'scenario': r['scenario'], 'vehicle': r['vehicle'],
-                                 'seed': r['seed'], 'metrics': r['metrics']} for r in rows]},
-                      f, indent=2, default=str)
+        problem = write_text(args.json, json.dumps(
+            {'seeds': seeds, 'overrides': args.set, 'config_dir': args.config_dir,
+             'vehicle': args.vehicle, 'summaries': summaries,
+             'runs': [{'scenario': r['scenario'], 'vehicle': r['vehicle'], 'seed': r['seed'],
+                       'metrics': r['metrics']} for r in rows]}, indent=2, default=str))
+        if problem is not None:
+            print(f'seed_sweep: {problem}', file=sys.stderr)
+            return 2
     return 1 if any('error' in r['metrics'] for r in rows) else 0
 
 

@@ -89,6 +89,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if (args.estimator != 'none' or args.sensor_set or args.sensor_fault) and not args.sensors:
         parser.error('--estimator, --sensor-set and --sensor-fault need --sensors')
+    trace_file = None if not args.trace else (
+        args.trace if args.trace.endswith('.npz') else args.trace + '.npz')   # numpy's naming
+    problem = ((cli_args.output_problem(args.json) if args.json else None)
+               or (cli_args.output_problem(trace_file) if trace_file else None))
+    if problem is not None:
+        print(f'simulate: {problem}', file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.WARNING)
     try:
         out, trace = run_closed_loop(args.scenario, args.set, args.seed, args.controller,
@@ -102,8 +109,13 @@ def main(argv=None) -> int:
     except ParamError as err:
         print(f'simulate: {err}', file=sys.stderr)
         return 2
-    if args.trace:
-        np.savez_compressed(args.trace, **trace)
+    if trace_file:
+        try:
+            np.savez_compressed(trace_file, **trace)
+        except OSError as err:
+            print(f'simulate: {trace_file}: cannot be written ({err.strerror or err})',
+                  file=sys.stderr)
+            return 2
     for plan in out.get('plans', ()):
         print(format_plan(plan), file=sys.stderr)
     for t in sorted(args.plan_at)[len(out.get('plans', ())):]:
@@ -112,9 +124,11 @@ def main(argv=None) -> int:
     out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
            for k, v in out.items()}
     text = json.dumps(out, indent=2, sort_keys=True)
-    if args.json:
-        Path(args.json).write_text(text + '\n')
     print(text)
+    problem = cli_args.write_text(args.json, text + '\n') if args.json else None
+    if problem is not None:
+        print(f'simulate: {problem}', file=sys.stderr)
+        return 2
     return 0
 
 

@@ -47,6 +47,10 @@ def main(argv=None) -> int:
     from drift_tools.bag_writer import BagExistsError, BagWriter
     from drift_tools.run_info import RECORD_NAME, collect
 
+    problem = cli_args.output_problem(args.bag, directory=True)
+    if problem is not None:
+        print(f'sysid_drive: {problem}', file=sys.stderr)
+        return 2
     try:
         spec = load_scenario_spec(args.scenario, args.set, args.config_dir, args.seed,
                                   args.vehicle)

@@ -135,8 +135,8 @@ def export_csv(bag_dir, out_dir, topics=None) -> list[tuple[Path, int]]:
     if out_dir.exists() and any(out_dir.iterdir()):
         raise FileExistsError(f'{out_dir}: exists and is not empty')
     messages = read_bag(bag_dir, topics=topics, backend='mcap')
-    if topics and not any(messages.get(t) for t in topics):
-        raise ValueError(f'{bag_dir}: no messages on {topics}')
+    if not any(messages.get(t) for t in (topics or messages)):
+        raise ValueError(f'{bag_dir}: no messages' + (f' on {topics}' if topics else ''))
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for topic, msgs in sorted(messages.items()):

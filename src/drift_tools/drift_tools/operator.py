@@ -20,6 +20,9 @@ from pathlib import Path
 
 import yaml
 
+from drift_control.cli_args import natural, output_problem, positive, seconds
+
+
 class CliError(Exception):
     """A refusal with its one-line reason and exit code."""
 
@@ -205,44 +208,53 @@ def probe(args) -> int:
     return 0
 
 
+def _window(text: str) -> int:
+    """A rate window: at least two messages."""
+    value = natural(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f'expected an integer >= 2, got {text!r}')
+    return value
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='drift', description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest='command', required=True)
     for name, helptext in (('arm', 'arm the vehicle bridge'), ('disarm', 'release the car')):
         s = sub.add_parser(name, help=helptext)
-        s.add_argument('--timeout', type=float, default=10.0)
+        s.add_argument('--timeout', type=seconds, default=10.0)
     s = sub.add_parser('status', help='the bridge\'s diagnostics (mode, rates, recording)')
     s.add_argument('--name', default='vehicle_bridge', help='status name prefix')
-    s.add_argument('--timeout', type=float, default=5.0)
+    s.add_argument('--timeout', type=seconds, default=5.0)
 
     topic = sub.add_parser('topic', help='live topics').add_subparsers(dest='sub', required=True)
     s = topic.add_parser('list', help='topics in the graph')
     s.add_argument('-t', '--types', action='store_true', help='show the message types')
-    s.add_argument('--wait', type=float, default=2.5, help='discovery time before listing [s]')
+    s.add_argument('--wait', type=seconds, default=2.5, help='discovery time before listing [s]')
     s = topic.add_parser('echo', help='print messages of a topic')
     s.add_argument('topic', type=absolute)
-    s.add_argument('-n', '--count', type=int, default=0, help='stop after N messages (0: never)')
-    s.add_argument('--timeout', type=float, default=10.0, help='give up after this long [s]')
+    s.add_argument('-n', '--count', type=natural, default=0,
+                   help='stop after N messages (0: never)')
+    s.add_argument('--timeout', type=seconds, default=10.0, help='give up after this long [s]')
     s = topic.add_parser('hz', help='receive rate of a topic, printed every second')
     s.add_argument('topic', type=absolute)
-    s.add_argument('--window', type=int, default=100, help='messages averaged over')
-    s.add_argument('--duration', type=float, default=0.0, help='stop after [s] (0: never)')
-    s.add_argument('--timeout', type=float, default=10.0, help='wait for a publisher [s]')
+    s.add_argument('--window', type=_window, default=100, help='messages averaged over (>= 2)')
+    s.add_argument('--duration', type=seconds, default=0.0, help='stop after [s] (0: never)')
+    s.add_argument('--timeout', type=seconds, default=10.0, help='wait for a publisher [s]')
     s = topic.add_parser('pub', help='publish a message (fields in YAML)')
     s.add_argument('topic', type=absolute)
     s.add_argument('type', help='pkg/msg/Name')
     s.add_argument('values', nargs='?', default='', help="e.g. '{data: 1.5}'")
-    s.add_argument('-n', '--count', type=int, default=1, help='messages (0: until stopped)')
-    s.add_argument('-r', '--rate', type=float, default=10.0, help='[Hz]')
+    s.add_argument('-n', '--count', type=natural, default=1, help='messages (0: until stopped)')
+    s.add_argument('-r', '--rate', type=positive, default=10.0, help='[Hz]')
     s.add_argument('--stamp', action='store_true', help='stamp the header with the node clock')
-    s.add_argument('--timeout', type=float, default=10.0, help='wait for a subscriber [s]')
+    s.add_argument('--timeout', type=seconds, default=10.0, help='wait for a subscriber [s]')
 
     service = sub.add_parser('service', help='services').add_subparsers(dest='sub', required=True)
     s = service.add_parser('call', help='call a service (request fields in YAML)')
     s.add_argument('service', type=absolute)
     s.add_argument('type', nargs='?', default=None, help='pkg/srv/Name (default: the graph\'s)')
     s.add_argument('values', nargs='?', default='', help="e.g. '{data: true}'")
-    s.add_argument('--timeout', type=float, default=10.0)
+    s.add_argument('--timeout', type=seconds, default=10.0)
 
     param = sub.add_parser('param', help='node parameters').add_subparsers(dest='sub',
                                                                             required=True)
@@ -253,7 +265,7 @@ def parser() -> argparse.ArgumentParser:
             s.add_argument('name')
         if name == 'set':
             s.add_argument('value', help='YAML value')
-        s.add_argument('--timeout', type=float, default=10.0)
+        s.add_argument('--timeout', type=seconds, default=10.0)
 
     bag = sub.add_parser('bag', help='recorded runs (read only)').add_subparsers(dest='sub',
                                                                                 required=True)
@@ -265,8 +277,8 @@ def parser() -> argparse.ArgumentParser:
     s = bag.add_parser('slice', help='a new bag with a time window and/or some topics')
     s.add_argument('bag', type=Path)
     s.add_argument('out', type=Path)
-    s.add_argument('--start', type=float, default=0.0, help='[s] after the first message')
-    s.add_argument('--end', type=float, default=None, help='[s] after the first message')
+    s.add_argument('--start', type=seconds, default=0.0, help='[s] after the first message')
+    s.add_argument('--end', type=seconds, default=None, help='[s] after the first message')
     s.add_argument('--topics', nargs='*', default=None)
     s = bag.add_parser('export', help='one CSV per topic, or one MDF4 file (a channel per field)')
     s.add_argument('bag', type=Path)
@@ -277,7 +289,7 @@ def parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser('probe', help='listen on the car\'s link (instead of the bridge): PDUs '
                                      'seen, rates from their stamps, E2E states')
-    s.add_argument('--duration', type=float, default=2.0, help='[s]')
+    s.add_argument('--duration', type=seconds, default=2.0, help='[s]')
     s.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='config/bridge.yaml override, e.g. transport=udp (repeatable)')
     s.add_argument('--config-dir', type=Path, default=None)
@@ -288,6 +300,11 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     try:
         if args.command == 'bag':
+            if getattr(args, 'out', None) is not None:   # a bag is evidence: never written to
+                directory = args.sub != 'export' or (args.format or export_format(args.out)) == 'csv'
+                problem = output_problem(args.out, [args.bag], directory=directory)
+                if problem is not None:
+                    raise CliError(problem, 2)
             return BAG_COMMANDS[args.sub](args)
         if args.command == 'probe':
             return probe(args)
