@@ -92,6 +92,22 @@ def test_an_unfinished_record_at_the_end_is_reported(tmp_path):
     w.close()
 
 
+def test_a_file_cut_inside_a_chunk_keeps_the_whole_records_before_the_cut(tmp_path):
+    write_run(tmp_path / 'bag', 400, chunk_size=10**6).close()   # one chunk for everything
+    mcap = next((tmp_path / 'bag').glob('*.mcap'))
+    offsets = chunk_offsets(mcap)
+    assert len(offsets) == 1
+    mcap.write_bytes(mcap.read_bytes()[:offsets[0] + 20000])     # a copy cut short
+    scan = scan_bag(tmp_path / 'bag')
+    assert [d.what for d in scan.damage] == [f'unfinished chunk ({len(scan.messages)} '
+                                             'messages of it kept)']
+    rec = recover_bag(tmp_path / 'bag', tmp_path / 'fixed')
+    kept = speeds(tmp_path / 'fixed')
+    assert 20 < len(kept) == rec.kept['/vehicle/state'] < 400
+    assert kept == [m.msg.v for m in read_bag(tmp_path / 'bag', backend='mcap')
+                    ['/vehicle/state']][:len(kept)]
+
+
 def test_recover_refuses_a_non_empty_target_and_garbage(bag, tmp_path):
     (tmp_path / 'full').mkdir()
     (tmp_path / 'full' / 'x').write_text('x')

@@ -122,6 +122,9 @@ def _walk(buf, pos: int, scan: Scan) -> None:
         if nxt is None:
             what = 'unfinished record' if opcode in _KNOWN_OPCODES and end > size \
                 else 'unreadable bytes'
+            if opcode == Opcode.CHUNK and end > size:
+                kept = _read_unfinished_chunk(buf, pos, scan)
+                what = f'unfinished chunk ({kept} messages of it kept)' if kept else what
             scan.damage.append(Damage(pos, size, what, _claimed_times(buf, pos, opcode)))
             return
         what = 'damaged chunk' if opcode == Opcode.CHUNK else 'unreadable bytes'
@@ -166,28 +169,52 @@ def _read_chunk(buf, pos: int, end: int, scan: Scan) -> bool:
     parsed = _chunk_body(buf, pos, end)
     if parsed is None:
         return False
-    _, raw = parsed
-    records, at = [], 0
+    staged, whole = _stage_records(parsed[1], scan.path)
+    if not whole:
+        return False
+    _merge(staged, scan)
+    scan.chunks += 1
+    return True
+
+
+def _read_unfinished_chunk(buf, pos: int, scan: Scan) -> int:
+    """The whole records of an uncompressed chunk the file ends inside (a copy cut short, a
+    full disk), kept in ``scan``; how many messages. A compressed one keeps nothing."""
+    body = pos + _RECORD_HEAD
+    if len(buf) - body < _CHUNK_FIXED + 8:
+        return 0
+    clen = struct.unpack_from('<QQQII', buf, body)[4]
+    if clen != 0:
+        return 0
+    (dlen,) = struct.unpack_from('<Q', buf, body + _CHUNK_FIXED)
+    start = body + _CHUNK_FIXED + 8
+    staged, _ = _stage_records(bytes(buf[start:min(len(buf), start + dlen)]), scan.path)
+    _merge(staged, scan)
+    return len(staged.messages)
+
+
+def _stage_records(raw: bytes, path) -> tuple[Scan, bool]:
+    """The records of a chunk's data, in order up to the first that is cut short or does not
+    parse, and whether that was all of them."""
+    staged, at = Scan(path), 0
     while at < len(raw):
         if len(raw) - at < _RECORD_HEAD:
-            return False
+            return staged, False
         opcode = raw[at]
         (length,) = struct.unpack_from('<Q', raw, at + 1)
         stop = at + _RECORD_HEAD + length
-        if stop > len(raw):
-            return False
-        records.append((opcode, raw[at + _RECORD_HEAD:stop]))
+        if stop > len(raw) or not _read_record(opcode, raw[at + _RECORD_HEAD:stop], staged):
+            return staged, False
         at = stop
-    staged = Scan(scan.path)
-    if not all(_read_record(op, body, staged) for op, body in records):
-        return False
+    return staged, True
+
+
+def _merge(staged: Scan, scan: Scan) -> None:
     for sid, schema in staged.schemas.items():
         scan.schemas.setdefault(sid, schema)
     for cid, channel in staged.channels.items():
         scan.channels.setdefault(cid, channel)
     scan.messages.extend(staged.messages)
-    scan.chunks += 1
-    return True
 
 
 def _read_record(opcode: int, body: bytes, scan: Scan) -> bool:
