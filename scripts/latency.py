@@ -50,7 +50,8 @@ def main(argv=None) -> int:
         result = latency(messages, args.skip, when)
         hops = stages(messages, args.skip, when) if not args.bag.is_file() else {}
     except (BagDamagedError, OSError, ValueError) as err:
-        print(f'latency: {args.bag}: {err}', file=sys.stderr)
+        named = str(err).startswith(str(args.bag))   # the readers' errors name the file
+        print(f'latency: {err}' if named else f'latency: {args.bag}: {err}', file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps({**result.as_dict(),

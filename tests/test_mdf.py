@@ -244,6 +244,20 @@ def test_report_on_a_bad_mdf4_file_is_one_line_and_exit_2(tmp_path, capfd, make,
     assert says in err and len(err.splitlines()) == 1, err
 
 
+def test_a_cut_file_leaves_no_destructor_complaint_for_later(tmp_path, monkeypatch):
+    import gc
+    import sys
+    from drift_tools.mdf import MdfError, open_mdf
+    complaints = []
+    monkeypatch.setattr(sys, 'unraisablehook', complaints.append)
+    cut = tmp_path / 'x.mf4'
+    cut.write_bytes(mdf_with(tmp_path / 'y.mf4').read_bytes()[:300])
+    with pytest.raises(MdfError, match='unreadable MDF4 file'):
+        open_mdf(cut)
+    gc.collect()   # the half-read reader, if still alive, complains here
+    assert complaints == []
+
+
 def test_a_dbc_that_decodes_nothing_names_the_missing_channels(tmp_path, capfd):
     write_can_log(tmp_path / 'x.mf4', REPO / 'config' / 'can' / DBCS[0], 3)
     other = REPO / 'config' / 'can' / 'drift_vehicle.dbc'

@@ -262,6 +262,9 @@ def open_mdf(path):
     except Exception as err:   # noqa: BLE001 - asammdf raises its own and builtin types on damage
         problem = f'{type(err).__name__}: {err}'
     finally:
+        if problem is not None:   # the half-built reader sits in a cycle with its traceback
+            import gc
+            gc.collect()
         sys.unraisablehook = hook
     raise MdfError(f'{path}: unreadable MDF4 file ({problem})')
 
