@@ -437,6 +437,29 @@ def test_a_slide_to_the_other_side_or_with_the_catch_off_is_not_caught():
         assert ref.target.beta == pytest.approx(0.0)
 
 
+def test_a_caught_slide_follows_a_profile_that_falls_within_the_entry():
+    """The caught floor is at most the drift sideslip at each ``s``: a profile falling from 35
+    to 20 deg inside the entry lowers it, and the entry ends without a step (it held 24.5 deg to
+    the entry's end and then fell 4.5 deg at the rate limit: a wet run braked and lost the path)."""
+    knots = tuple((s, math.radians(b)) for s, b in ((0.0, 35.0), (30.0, 35.0), (45.0, 20.0),
+                                                   (80.0, 20.0)))
+    prof = P.SideslipProfile(0.0, grip_until=5.0, ramp_length=60.0, knots=knots)
+    path = P.circle(R, Direction.LEFT, sideslip=prof)
+    sel = ReferenceSelector(steady_circle_lookup, path, params(catch_beta=math.radians(8.0),
+                                                               beta_rate_max=100.0))
+    beta_ref, drift = [], []
+    sel.select(state_on(path, 15.0, t=-0.5))   # the side is known from the first cycle on
+    for k, (s, slide_deg) in enumerate([(20.0, 26.0), (40.0, 26.0), (50.0, 21.0), (60.0, 20.0),
+                                        (70.0, 20.0)]):
+        ref = sel.select(state_on(path, s, t=0.5 * k, beta=-math.radians(slide_deg)))
+        beta_ref.append(math.degrees(-ref.target.beta))
+        drift.append(math.degrees(float(path.drift_beta_at(s))))
+    assert beta_ref[0] == pytest.approx(26.0)                   # caught below the 35 deg ahead
+    assert beta_ref[1] == pytest.approx(drift[1], abs=0.05)     # capped by the falling profile
+    assert all(b <= d + 0.05 for b, d in zip(beta_ref, drift)), (beta_ref, drift)
+    assert beta_ref[-1] == pytest.approx(20.0)                  # after the entry: the profile
+
+
 @pytest.mark.parametrize('direction', [Direction.LEFT, Direction.RIGHT])
 def test_the_entry_reference_leads_the_cars_own_sideslip_by_at_most_entry_lead(direction):
     """A car that does not slide as the ramp asks: the entry's sideslip reference stays within

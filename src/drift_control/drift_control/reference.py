@@ -233,15 +233,18 @@ class ReferenceSelector:
         A car with less rear grip than the map's starts to slide before the entry ramp asks for
         it; pulling it back to grip fights the slide (torque bang-bang, then a spin). In the
         entry, a slide to the drift side beyond ``catch_beta`` becomes the reference's floor,
-        latched and at most the drift sideslip the ramp leads to; after the entry it lapses.
+        latched, and at each ``s`` at most the drift sideslip the ramp leads to there (a profile
+        that falls within the entry lowers it: a floor above it would end the entry in a step);
+        after the entry it lapses.
         """
         if self.p.catch_beta <= 0.0 or s >= self.path.sideslip.entry_end or self._w is None:
             self._caught = 0.0
             return 0.0
         slide = -state.beta if self._w >= 0.5 else state.beta   # a left drift has beta < 0
+        drift = float(self.path.drift_beta_at(s))
         if slide > self.p.catch_beta:
-            self._caught = max(self._caught, min(slide, float(self.path.drift_beta_at(s))))
-        return self._caught
+            self._caught = max(self._caught, min(slide, drift))
+        return min(self._caught, drift)
 
     def _led(self, beta_abs: float, state: VehicleState, s: float) -> float:
         """The entry's sideslip reference [rad], at most ``entry_lead`` beyond the car's own
@@ -350,8 +353,8 @@ class ReferenceSelector:
         s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
         K_paths, betas = self.path.curvature_at(s_k), self.path.beta_at(s_k)
         if self._caught > 0.0:   # a caught slide holds the stages still in the entry
-            betas = np.where(s_k < self.path.sideslip.entry_end,
-                             np.maximum(betas, self._caught), betas)
+            floor = np.minimum(self._caught, self.path.drift_beta_at(s_k))
+            betas = np.where(s_k < self.path.sideslip.entry_end, np.maximum(betas, floor), betas)
         planned = self.path.side_at(s_k).tolist() if self.path.side is not None else None
         # _limit and side_weight written out: 24 stages a cycle, the same operations
         dK, dbeta, dw = p.curvature_rate_max * h, p.beta_rate_max * h, p.side_rate_max * h
