@@ -9,6 +9,7 @@ Run with the venv's interpreter after adding a package to ``DIRECT`` and install
 through ``ros-jazzy-*`` wheels; the ``ros-*`` and bare ``*_msgs`` distributions they pull in are
 pinned in the lock file only (the bare egg-infos ship inside those wheels and are left out).
 """
+import argparse
 import importlib.metadata as md
 import re
 from pathlib import Path
@@ -47,7 +48,8 @@ def installed() -> dict:
     return out
 
 
-def main() -> None:
+def main(argv=None) -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)   # --help
     have = installed()
     direct = []
     for spec in DIRECT + BOOTSTRAP:
