@@ -79,3 +79,29 @@ def test_the_summary_and_its_json_may_not_be_one_file(tmp_path, capsys):
     assert load_script('campaign').main(argv) == 2
     assert 'name the same file' in capsys.readouterr().err
     assert not store.exists()
+
+
+@pytest.mark.parametrize('argv', [
+    ['topic', 'hz', '/x', '--window', '1'],             # printed "no messages" at any rate
+    ['topic', 'pub', '/x', 'std_msgs/msg/Float64', '-r', 'nan'],   # hung
+    ['topic', 'list', '--wait', 'nan'],                 # hung
+    ['bag', 'slice', 'a', 'b', '--end', 'inf'],         # OverflowError
+])
+def test_the_operator_refuses_numbers_that_hang_or_crash_it(argv, capsys):
+    from drift_tools.operator import parser
+    with pytest.raises(SystemExit) as done:
+        parser().parse_args(argv)
+    assert done.value.code == 2 and 'expected' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('script, argv', [
+    ('replay', ['bag', '--loop', '-1']),                # looped forever
+    ('replay', ['bag', '--rate', 'nan']),
+    ('bench_model', ['--repeat', '0']),                 # ZeroDivisionError
+    ('estimator_eval', ['--synthetic', '1', '--seeds', '-1']),
+    ('estimator_eval', ['--window', '50', '20']),
+])
+def test_scripts_refuse_bad_numbers_before_the_work(script, argv, capsys):
+    with pytest.raises(SystemExit) as done:
+        load_script(script).main(argv)
+    assert done.value.code == 2 and 'error' in capsys.readouterr().err
