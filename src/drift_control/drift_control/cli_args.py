@@ -41,7 +41,7 @@ def natural(text: str) -> int:
 
 def nonnegative(text: str) -> float:
     """A finite number >= 0 (a rate where 0 means "unpaced")."""
-    return seconds(text)
+    return _checked(text, float, lambda v: 0.0 <= v < math.inf, 'a finite number >= 0')
 
 
 def count(text: str) -> int:

@@ -301,7 +301,8 @@ def main(argv=None) -> int:
     try:
         if args.command == 'bag':
             if getattr(args, 'out', None) is not None:   # a bag is evidence: never written to
-                directory = args.sub != 'export' or (args.format or export_format(args.out)) == 'csv'
+                fmt = args.format or export_format(args.out) if args.sub == 'export' else None
+                directory = fmt != 'mdf4'   # a bag, or a directory of CSV files
                 problem = output_problem(args.out, [args.bag], directory=directory)
                 if problem is not None:
                     raise CliError(problem, 2)
