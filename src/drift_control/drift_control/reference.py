@@ -47,6 +47,7 @@ class ReferenceParams:
     integral_limit: float = 1.0   # anti-windup bound on int e_y dt [m s]
     integral_band: float = 1.5    # integrate e_y only while |e_y| is below this [m] ...
     integral_beta_band: float = 0.05   # ... and |beta - beta_ref| below this [rad]
+    curvature_bias_time: float = 0.0   # time constant of the learnt curvature bias [s] (0: off)
     correction_limit: float = 0.05     # bound on |K_cmd - K(s)| [1/m]
     curvature_rate_max: float = 0.5    # bound on |dK_cmd/dt| [1/(m s)]
     beta_rate_max: float = 1.0         # bound on |d beta_ref/dt| [rad/s]
@@ -161,6 +162,8 @@ class ReferenceSelector:
         self._warn = _Throttled(params.warn_interval)
         self._last: Reference | None = None
         self._integral = 0.0
+        self._bias = 0.0       # the car's curvature beyond the one asked, left drift [1/m]
+        self._steady = False   # the last reference was a steady one-sided drift
         self._beta_ref = self._w = None
         self._caught = 0.0     # sideslip of a slide caught in the entry [rad]
         self.rejected = 0      # states refused as non-finite or without a pose
@@ -170,7 +173,7 @@ class ReferenceSelector:
         search for the path position (or a local one around ``s_hint`` [m])."""
         self.frenet.reset(s_hint)
         self._last, self._integral, self._beta_ref, self._w = None, 0.0, None, None
-        self._caught = 0.0
+        self._caught, self._bias, self._steady = 0.0, 0.0, False
 
     def side_weight(self, K: float) -> float:
         """Weight of the left equilibrium [-]: 1 for ``K >= band``, 0 for ``K <= -band``, a
@@ -278,7 +281,10 @@ class ReferenceSelector:
         # scaled by the side, 2 w - 1, which passes through 0 mid-flip (last cycle's weight)
         side = 1.0 if self._w is None else 2.0 * self._w - 1.0
         integral = side * self._integral
-        correction = p.k_p * fp.e_y + p.k_d * e_y_rate + p.k_i * integral
+        if limited and self._steady and p.curvature_bias_time > 0.0 and state.V > 1.0:
+            self._learn_bias(side * (state.r / state.V - last.curvature_cmd), dt)
+        correction = (p.k_p * fp.e_y + p.k_d * e_y_rate + p.k_i * integral
+                      + side * self._bias)
         correction = max(-p.correction_limit, min(p.correction_limit, correction))
         K_raw = fp.K - correction
         K_cmd = max(-k_max, min(k_max, K_raw))
@@ -328,6 +334,8 @@ class ReferenceSelector:
         if p.course_yaw and in_use and len(horizon) > 1:   # needs stages
             horizon = _course_yaw(horizon, p.horizon_dt)
             target = horizon[0]
+        self._steady = p.curvature_bias_time > 0.0 and self._steady_drift(
+            fp, state, beta_abs, beta_end, after_entry and not flipping)
         ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
                         curvature=fp.K, curvature_cmd=K_cmd, s=fp.s, e_y=fp.e_y,
                         heading_error=fp.heading_error, clamped=clamped)
@@ -338,6 +346,31 @@ class ReferenceSelector:
             return last
         self._last = ref
         return ref
+
+    def _steady_drift(self, fp, state: VehicleState, beta_abs: float, beta_end: float,
+                      one_sided: bool) -> bool:
+        """Whether the car drifts steadily: after the entry, one side, on its sideslip
+        reference, and the sideslip and the path's curvature the same over the horizon (in a
+        clothoid the car's curvature lags the one asked, which is no bias)."""
+        p = self.p
+        if not (one_sided and beta_abs > p.integral_beta_band
+                and abs(beta_end - beta_abs) < 1e-3
+                and abs(abs(state.beta) - beta_abs) < p.integral_beta_band):
+            return False
+        ahead = fp.s + max(state.V, 0.0) * p.horizon_steps * p.horizon_dt
+        return abs(float(self.path.curvature_at(ahead)) - fp.K) < 1e-3
+
+    def _learn_bias(self, error: float, dt: float) -> None:
+        """Move the curvature bias towards ``error``, the car's curvature ``r / V`` beyond the
+        one asked last cycle (a left drift's sign), over ``curvature_bias_time``.
+
+        A car that turns tighter or wider than its equilibrium says holds a steady lateral error
+        the P term only shrinks; the integral of ``e_y`` removes it but also learns every
+        flip's and entry's transient, and then overshoots through the next drift. The bias is
+        measured on the curvature itself, only in a steady drift on its sideslip reference,
+        and mirrored for a right drift as the integral is.
+        """
+        self._bias += min(1.0, dt / self.p.curvature_bias_time) * (error - self._bias)
 
     def _horizon(self, s, V, correction, start):
         """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 at ``start``), same limits,
