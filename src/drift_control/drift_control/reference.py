@@ -4,10 +4,11 @@ Paper Sec. IV: the offline equilibria are selected along the path by arc length 
 path-following controller alters the path curvature in proportion to the lateral error ``e_y``,
 and the altered curvature indexes the lookup table. Here::
 
-    K_cmd = K(s) - (k_p e_y + k_d de_y/dt + k_i int e_y dt),   de_y/dt = V sin(psi + beta)  (Eq. 1)
+    K_cmd = K(s) - (k_p e_y + k_d de_y/dt + k_i int e_y dt + b),   de_y/dt = V sin(psi + beta)
 
 with positive gains: a car left of the path (``e_y > 0``) is asked to turn more to the right. On
-a left circle the outside is ``e_y < 0``, so an outside car gets a tighter left curvature.
+a left circle the outside is ``e_y < 0``, so an outside car gets a tighter left curvature. ``b``
+is the car's curvature beyond the one asked, learnt in steady drifts (``_learn_bias``).
 ``|K_cmd|`` is limited to the map's curvature range and rate-limited in time. The left and right
 equilibria are blended with a weight that is a smoothstep in the path's curvature ``K(s)`` on
 ``|K| < side_band`` (the side is the path's; the correction only changes the radius) and
