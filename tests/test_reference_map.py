@@ -27,11 +27,11 @@ def test_alternating_manoeuvre_on_the_real_map(dry):
     p = load_reference_params(os.path.join(cfg, 'reference.yaml'))
     sel = ReferenceSelector(dry.lookup, path, p)
     sel.reset(s_hint=0.0)
-    x, y, course, dt, V, r = 0.0, -0.5, 0.0, 0.02, 8.0, 0.0
+    x, y, course, dt, V, yaw_rate = 0.0, -0.5, 0.0, 0.02, 8.0, 0.0
     refs = []
     for k in range(4000):
         beta = refs[-1].target.beta if refs else 0.0
-        ref = sel.select(VehicleState(stamp=k * dt, V=V, beta=beta, r=r, x=x, y=y,
+        ref = sel.select(VehicleState(stamp=k * dt, V=V, beta=beta, r=yaw_rate, x=x, y=y,
                                       yaw=course - beta))
         assert ref.is_finite() and len(ref.horizon) == p.horizon_steps
         refs.append(ref)
@@ -42,7 +42,7 @@ def test_alternating_manoeuvre_on_the_real_map(dry):
         x += V * dt * math.cos(course + 0.5 * turn)
         y += V * dt * math.sin(course + 0.5 * turn)
         course += turn
-        r = turn / dt                         # its yaw rate (the selector learns r / V)
+        yaw_rate = turn / dt                  # the selector learns r / V
     s = np.array([r.s for r in refs])
     assert s[-1] > path.length - 2.0, 'drove the whole manoeuvre'
     left = [r for r in refs if 110.0 < r.s < 130.0]   # past the grip phase and the 80 m ramp
