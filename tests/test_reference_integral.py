@@ -111,3 +111,22 @@ def test_the_bias_learnt_in_the_left_drift_is_mirrored_and_held_through_the_flip
     # a right drift that turns as asked unlearns it
     right = drive(sel, path, 125.0, 6.0, t0=10.5, tighter=0.0)
     assert right.curvature_cmd == pytest.approx(-K, rel=1e-3)
+
+
+def test_a_yaw_rate_stuck_at_zero_takes_no_more_than_the_bias_bound(caplog):
+    """A yaw-rate signal stuck at 0 reads as a car that does not turn: unbounded, ``b`` would
+    follow it to ``-K`` and ask the whole correction limit; the bound keeps it, and says so."""
+    K, limit = 1.0 / 15.0, 0.015
+    prof = P.SideslipProfile(math.radians(30.0), ramp_length=20.0)
+    path = P.circle(15.0, Direction.LEFT, sideslip=prof)
+    sel = ReferenceSelector(steady_circle_lookup, path,
+                            bias_params(correction_limit=0.05, curvature_bias_limit=limit))
+    dt, V = 0.02, 10.0
+    with caplog.at_level('WARNING', logger='drift_control.reference'):
+        for k in range(int(10.0 / dt)):
+            t = 2.0 + k * dt
+            st = replace(state_on(path, 30.0 + V * (t - 2.0), 0.0, t=t, V=V),
+                         r=0.0, beta=-math.radians(30.0))
+            ref = sel.select(st)
+    assert ref.curvature_cmd == pytest.approx(K + limit, rel=1e-9)
+    assert 'curvature bias' in caplog.text and 'bound' in caplog.text

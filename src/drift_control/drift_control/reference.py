@@ -49,6 +49,7 @@ class ReferenceParams:
     integral_band: float = 1.5    # integrate e_y only while |e_y| is below this [m] ...
     integral_beta_band: float = 0.05   # ... and |beta - beta_ref| below this [rad]
     curvature_bias_time: float = 0.0   # time constant of the learnt curvature bias [s] (0: off)
+    curvature_bias_limit: float = 0.0  # bound on |b| [1/m] (0: correction_limit)
     correction_limit: float = 0.05     # bound on |K_cmd - K(s)| [1/m]
     curvature_rate_max: float = 0.5    # bound on |dK_cmd/dt| [1/(m s)]
     beta_rate_max: float = 1.0         # bound on |d beta_ref/dt| [rad/s]
@@ -369,9 +370,19 @@ class ReferenceSelector:
         the P term only shrinks; the integral of ``e_y`` removes it but also learns every
         flip's and entry's transient, and then overshoots through the next drift. The bias is
         measured on the curvature itself, only in a steady drift on its sideslip reference,
-        and mirrored for a right drift as the integral is.
+        and mirrored for a right drift as the integral is. It is bounded
+        (``curvature_bias_limit``): a yaw-rate signal stuck at zero reads as a car that does not
+        turn, and would otherwise pull ``b`` to ``-K``.
         """
-        self._bias += min(1.0, dt / self.p.curvature_bias_time) * (error - self._bias)
+        p = self.p
+        bias = self._bias + min(1.0, dt / p.curvature_bias_time) * (error - self._bias)
+        bound = p.curvature_bias_limit or p.correction_limit
+        if abs(bias) > bound:   # a yaw rate that disagrees with the turn: never all the correction
+            self._warn.warning('bias', 'reference: the learnt curvature bias %.4f 1/m is at its '
+                               'bound (reference.curvature_bias_limit %.4f): does the yaw rate '
+                               'match the turn?', bias, bound)
+            bias = math.copysign(bound, bias)
+        self._bias = bias
 
     def _horizon(self, s, V, correction, start):
         """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 at ``start``), same limits,
