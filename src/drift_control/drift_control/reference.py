@@ -377,7 +377,7 @@ class ReferenceSelector:
         p = self.p
         bias = self._bias + min(1.0, dt / p.curvature_bias_time) * (error - self._bias)
         bound = p.curvature_bias_limit or p.correction_limit
-        if abs(bias) > bound:   # a yaw rate that disagrees with the turn: never all the correction
+        if abs(bias) > bound:   # more than the correction may ask: a yaw rate at odds with the turn
             self._warn.warning('bias', 'reference: the learnt curvature bias %.4f 1/m is at its '
                                'bound (reference.curvature_bias_limit %.4f): does the yaw rate '
                                'match the turn?', bias, bound)
