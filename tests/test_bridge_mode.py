@@ -194,6 +194,7 @@ def test_takeover_or_loss_drops_to_off_within_one_cycle_and_stays_off(rig, event
         'driver_torque': 'DRIVER_TORQUE', 'brake_pedal': 'BRAKE_PEDAL',
         'steering_frame_lost': 'STATE_INVALID', 'spin_out': 'ENVELOPE',
         'state_stops': 'STATE_INVALID', 'heartbeat_lost': 'HEARTBEAT'}[event]
+    assert rig.gw.stats()['dropped_at'] == pytest.approx(t_off), 'when, for the diagnostics'
     for _ in range(10):   # the cause is gone: still OFF until someone arms again
         mode, applied, written = rig.cycle()
         assert mode == BridgeMode.OFF and applied is None and not _requests(written)

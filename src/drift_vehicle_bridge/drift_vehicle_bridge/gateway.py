@@ -137,8 +137,8 @@ class Gateway:
             return False, 'arm refused: replay (no link)'
         return self.modes.request_arm(self.judged_state(now), now)
 
-    def disarm(self) -> None:
-        self.modes.disarm()
+    def disarm(self, now: float | None = None) -> None:
+        self.modes.disarm(now)
 
     def discard_backlog(self) -> int:
         """Drop what the link queued before the first cycle; returns how many PDUs.
@@ -178,7 +178,8 @@ class Gateway:
         """Counters for diagnostics (totals since start)."""
         checker = self.monitor.checker
         return {'mode': self.mode.name, 'drop_reason': self.modes.reason.name,
-                'drops': dict(self.modes.drops), 'implausible': self.modes.implausible or '',
+                'drops': dict(self.modes.drops), 'dropped_at': self.modes.dropped_at,
+                'implausible': self.modes.implausible or '',
                 'validity': self.state.validity if self.state else 0,
                 'rx': dict(checker.accepted), 'rx_rate': checker.rates(),
                 'rx_stamp': checker.last_stamps(),

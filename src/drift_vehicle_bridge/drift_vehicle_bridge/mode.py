@@ -58,6 +58,7 @@ class ModeManager:
         self.reason = DropReason.NONE
         self.implausible: str | None = None   # why the last state was not believed
         self.drops: Counter = Counter()       # 'FROM_MODE/REASON' -> drops to OFF since start
+        self.dropped_at: float | None = None  # when the last drop came (the caller's clock) [s]
         self._armed_at = 0.0
 
     def hazard(self, state: VehicleState | None, envelope: Envelope,
@@ -91,9 +92,9 @@ class ModeManager:
         log.info('armed')
         return True, 'armed'
 
-    def disarm(self) -> None:
+    def disarm(self, now: float | None = None) -> None:
         if self.mode != BridgeMode.OFF:
-            self._drop(DropReason.DISARM)
+            self._drop(DropReason.DISARM, now)
 
     def update(self, now: float, state: VehicleState | None, command: Command | None,
                command_time: float | None) -> BridgeMode:
@@ -106,14 +107,14 @@ class ModeManager:
             fresh and self._active_mode(command.mode) == BridgeMode.ACTIVE_TORQUE_ONLY)
         hazard = self.hazard(state, self.p.active_envelope, stack_steers=not driver_steers)
         if hazard is not None:
-            return self._drop(hazard)
+            return self._drop(hazard, now)
         if self.mode == BridgeMode.ARMED:
             if fresh and command.mode != Mode.OFF:
                 self.mode = self._active_mode(command.mode)
             elif now - self._armed_at > self.p.arm_timeout:
-                return self._drop(DropReason.ARM_TIMEOUT)
+                return self._drop(DropReason.ARM_TIMEOUT, now)
         elif not fresh:
-            return self._drop(DropReason.HEARTBEAT)
+            return self._drop(DropReason.HEARTBEAT, now)
         elif command.mode == Mode.OFF:
             self.mode, self.reason, self._armed_at = BridgeMode.ARMED, DropReason.COMMAND_OFF, now
         else:
@@ -126,11 +127,11 @@ class ModeManager:
             return BridgeMode.ACTIVE_TORQUE_ONLY
         return BridgeMode.ACTIVE_FULL
 
-    def _drop(self, reason: DropReason) -> BridgeMode:
+    def _drop(self, reason: DropReason, now: float | None) -> BridgeMode:
         log.warning('%s -> OFF: %s%s', self.mode.name, reason.name,
                     f' ({self.implausible})' if self.implausible else '')
         self.drops[f'{self.mode.name}/{reason.name}'] += 1
-        self.mode, self.reason = BridgeMode.OFF, reason
+        self.mode, self.reason, self.dropped_at = BridgeMode.OFF, reason, now
         return self.mode
 
 

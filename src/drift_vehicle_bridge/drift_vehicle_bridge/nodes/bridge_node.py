@@ -103,7 +103,7 @@ class BridgeNode(Node):
         if request.data:
             response.success, response.message = self._gw.request_arm(time.monotonic())
         else:
-            self._gw.disarm()
+            self._gw.disarm(time.monotonic())
             response.success, response.message = True, 'disarmed'
         self.get_logger().info(f'arm request {request.data}: {response.message}')
         return response
@@ -139,6 +139,10 @@ class BridgeNode(Node):
                                             self.get_clock().now().to_msg(), self._hw)
         diag.status[0].values.extend(convert.key_values(convert.gap_values(
             'cycle_gap', self._cycle.take())))
+        if stats['dropped_at'] is not None:   # the last drop on the ROS clock, as the stamps
+            ago = time.monotonic() - stats['dropped_at']
+            diag.status[0].values.extend(convert.key_values(
+                {'drop_stamp': f'{self.get_clock().now().nanoseconds * 1e-9 - ago:.6f}'}))
         recording = self._recorder.status(time.monotonic())
         if recording is not None:
             diag.status.append(convert.peer_status('vehicle_bridge: recording', *recording))
