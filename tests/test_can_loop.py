@@ -123,10 +123,10 @@ def test_machine_meter_counts_slow_cpus_and_steal_not_noise():
     assert meter.worst(t[0], t[90]) == 0.0
     # 20 samples of 5 ms, each 1 - 70 / 250 slow (the median: 70 us, the slow ones included)
     assert meter.worst(t[95], t[125]) == pytest.approx(20 * (1 - 70 / 250) * 5.0)
-    assert meter.worst(t[95], t[125], slow=False) == 0.0
     tick_ms = 1e3 / os.sysconf('SC_CLK_TCK')
     meter.steal = [(t[0], 0), (t[50], 3), (t[150], 3)]     # 3 ticks stolen at t[50]
-    assert meter.worst(t[40], t[60], slow=False) == pytest.approx(3 * tick_ms)
+    assert meter.worst(t[40], t[60]) == pytest.approx(3 * tick_ms)
+    assert meter.worst(t[95], t[125]) == pytest.approx(20 * (1 - 70 / 250) * 5.0)
 
 
 def _longest_run(t, mask) -> float:
@@ -209,15 +209,14 @@ class MachineMeter:
                     read_steal = False
             self._stop.wait(self.PERIOD)
 
-    def worst(self, start: float, end: float, window: float = 0.1,
-              slow: bool = True) -> float:
+    def worst(self, start: float, end: float, window: float = 0.1) -> float:
         """Most CPU time [ms] taken within ``window`` [s] anywhere in [start, end]: stolen,
-        and with ``slow`` the time the CPUs ran slow."""
+        or lost to CPUs running slow."""
         events = []   # (time, ms taken)
         if len(self.steal) > 1:
             t, v = np.array(self.steal, dtype=float).T
             events += zip(t[1:], np.diff(v) * self._tick_ms)
-        for samples in self.work.values() if slow else ():
+        for samples in self.work.values():
             if len(samples) < 10:
                 continue
             t, w = np.array(samples).T
@@ -358,13 +357,12 @@ def can_loop(request, tmp_path_factory):
     from drift_vehicle_bridge.codec import Codec
     from drift_control.params import config_dir
     codec = Codec.load(config_dir() / description)
-    # the most the hypervisor stole anywhere in the run once the bridge was up [ms in 100 ms]
-    stolen_max = meter.worst(diags[0]['_t'] + run.t0, diags[-1]['_t'] + run.t0, slow=False) \
-        if diags else 0.0
+    # the most the machine took anywhere in the run once the bridge was up [ms in 100 ms]
+    taken_max = meter.worst(diags[0]['_t'] + run.t0, diags[-1]['_t'] + run.t0) if diags else 0.0
     return SimpleNamespace(run=run, metrics=m, diags=diags, car=car, wall=wall, timing=timing,
                            link=request.param, sensors=bool(extra), codec=codec, stall=stall,
                            bridge_stall=bridge_stall, stalls=stalls, taken=taken,
-                           stolen_max=stolen_max)
+                           taken_max=taken_max)
 
 
 def _pdu_hz(can_loop, name: str) -> float:
@@ -456,8 +454,8 @@ def test_can_loop_bus_and_bridge(can_loop):
     # the state PDUs' rate from their reception stamps; a machine whose CPUs were taken from it
     # for 40 ms and more (all nodes stopped) cannot keep 100 per second: printed, not judged
     stamped = _stamped_rates(live[0], live[-1], state_pdus)
-    rated = can_loop.stolen_max < TAKEN_MS
-    print(f'the hypervisor stole at most {can_loop.stolen_max:.0f} ms of CPU in 100 ms'
+    rated = can_loop.taken_max < TAKEN_MS
+    print(f'the machine took at most {can_loop.taken_max:.0f} ms of CPU in 100 ms'
           + ('' if rated else ': PDU rates not judged'))
     assert not rated or all(abs(hz - _pdu_hz(can_loop, n)) < 1.0 for n, hz in stamped.items()), \
         f'PDUs per second: {stamped}'
@@ -562,8 +560,8 @@ def test_can_loop_holds_the_drift(can_loop):
                f'< -1000 Nm in {100 * braking:.0f} %; '
                f'{can_loop.timing}')
     print(f'{can_loop.link} loop drift:', summary)
+    _skip_if_the_machine_dropped(can_loop, summary)   # a drop in the first second ends it too
     assert beta_deg[t < 1.0].min() > 20.0, f'starts in the drift; {summary}'
-    _skip_if_the_machine_dropped(can_loop, summary)
     assert not drops, summary
     assert held > 8.0, summary
     assert beta_deg.max() < SPIN_DEG and not m['spun'], summary
