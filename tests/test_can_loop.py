@@ -126,7 +126,7 @@ def test_machine_meter_counts_slow_cpus_and_steal_not_noise():
     tick_ms = 1e3 / os.sysconf('SC_CLK_TCK')
     meter.steal = [(t[0], 0), (t[50], 3), (t[150], 3)]     # 3 ticks stolen at t[50]
     assert meter.worst(t[40], t[60]) == pytest.approx(3 * tick_ms)
-    assert meter.worst(t[95], t[125]) == pytest.approx(20 * (1 - 70 / 250) * 5.0)
+    assert meter.worst(t[95], t[125]) == pytest.approx(20 * (1 - 70 / 250) * 5.0), 'apart'
 
 
 def _longest_run(t, mask) -> float:
@@ -160,9 +160,9 @@ class MachineMeter:
     above the launch where allowed) that times the same work in thread CPU time, so a thread
     that waits for its CPU does not count, only a CPU that runs slow. A sample at least ``SLOW``
     times the run's median, with one of its neighbours, took ``1 - median / sample`` of the time
-    since the sample before. 40-220 ms of the two CPUs'
-    time within 100 ms stalls every node at once, whatever its priority, and the bridge's 30 ms
-    frame timeout or 60 ms heartbeat trips, as it must.
+    since the sample before. 40-220 ms of the two CPUs' time within 100 ms stalls every node at
+    once, whatever its priority, and the bridge's 30 ms frame timeout or 60 ms heartbeat trips,
+    as it must.
     """
 
     PERIOD = 0.005
