@@ -38,6 +38,7 @@ def publish(args) -> int:
     from rclpy.signals import SignalHandlerOptions
     from rosgraph_msgs.msg import Clock
 
+    from drift_tools.dds import use_udp_here
     from drift_tools.replay import Pacer, iter_replay, message_class, topic_qos
 
     topics = args.topics or None
@@ -59,7 +60,7 @@ def publish(args) -> int:
     if first is None:
         print('replay: nothing to publish (no such topics in the bag)', file=sys.stderr)
         return 2
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    use_udp_here()
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt))
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('replay')

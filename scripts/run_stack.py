@@ -83,6 +83,9 @@ def parse_args(argv=None):
     p.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '0') or 0))
     p.add_argument('--discovery-range', choices=DISCOVERY_RANGES,
                    default=os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'))
+    p.add_argument('--dds-shared-memory', action='store_true',
+                   help='let Fast DDS use shared memory (rmw default); without it the nodes talk '
+                        'UDP, whose writes never wait on a reader (docs/dds.md)')
     p.add_argument('--kill-timeout', type=float, default=8.0,
                    help='seconds a node gets after SIGINT before SIGKILL')
     p.add_argument('--log-dir', type=Path, help='also write each node\'s output to DIR/<node>.log')
@@ -201,6 +204,7 @@ def main(argv=None) -> int:
                           sim_duration=args.sim_duration,
                           vehicle=args.vehicle or '',
                           discovery_range=args.discovery_range,
+                          dds_shared_memory=args.dds_shared_memory,
                           sensors=args.sensors, estimator=args.estimator,
                           estimator_in=args.estimator_in,
                           sensor_set=tuple(args.sensor_set),

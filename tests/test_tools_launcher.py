@@ -2,6 +2,9 @@
 import ast
 import dataclasses
 import io
+import json
+import os
+import subprocess
 import sys
 import threading
 import time
@@ -293,7 +296,9 @@ def test_an_empty_scenario_is_not_passed(tmp_path):
 def test_child_env_always_sets_domain_and_discovery(tmp_path):
     opts = RunOptions(params_file=tmp_path, config_dir=tmp_path, domain_id=17)
     env = node_env(opts, base={'ROS_DOMAIN_ID': '3', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'})
+    # a config without the DDS profile: rmw's own LOCALHOST
     assert env['ROS_DOMAIN_ID'] == '17' and env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+    assert 'FASTRTPS_DEFAULT_PROFILES_FILE' not in env
     with pytest.raises(ParamError, match='clock'):
         RunOptions(params_file=tmp_path, config_dir=tmp_path, clock='fast')
 
@@ -374,3 +379,47 @@ def test_a_recorded_run_waits_for_every_critical_node_of_the_launch(tmp_path):
     unrecorded = dataclasses.replace(opts, bag_dir=None)
     assert 'wait_nodes' not in _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'),
                                                     unrecorded))
+
+
+def test_nodes_talk_dds_over_udp_unless_told_otherwise(tmp_path):
+    """LOCALHOST through the loopback-UDP profile, SUBNET with Fast DDS's UDP transport only; a
+    profile or transport the user chose, another RMW, or --dds-shared-memory is left alone."""
+    config = REPO / 'config'
+    profile = (config / 'dds' / 'localhost_udp.xml').resolve()
+
+    def env_for(base=None, **kw):
+        return node_env(RunOptions(params_file=tmp_path, config_dir=config, **kw), base=base or {})
+
+    env = env_for()
+    assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SYSTEM_DEFAULT'
+    assert env['FASTRTPS_DEFAULT_PROFILES_FILE'] == str(profile)
+    env = env_for(discovery_range='SUBNET')
+    assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'SUBNET'
+    assert env['FASTDDS_BUILTIN_TRANSPORTS'] == 'UDPv4'
+    for base, kw in (({'FASTRTPS_DEFAULT_PROFILES_FILE': '/mine.xml'}, {}),
+                     ({'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}, {}),
+                     ({}, {'dds_shared_memory': True})):
+        env = env_for(base, **kw)
+        assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST', (base, kw)
+        assert env.get('FASTRTPS_DEFAULT_PROFILES_FILE') == base.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+        assert 'FASTDDS_BUILTIN_TRANSPORTS' not in env
+
+
+@pytest.mark.ros
+def test_a_launched_node_talks_to_a_localhost_peer_over_loopback_udp_only(tmp_path,
+                                                                         tools_domain_id):
+    """A node with the launcher's environment is heard by a plain LOCALHOST process and maps no
+    Fast DDS shared memory; its sockets are on 127.0.0.1 only."""
+    plain = dict(os.environ)
+    launched = node_env(RunOptions(params_file=tmp_path, config_dir=REPO / 'config',
+                                   domain_id=tools_domain_id), base=plain)
+    probe = [sys.executable, str(REPO / 'tests' / 'dds_probe.py')]
+    reader = subprocess.Popen(probe + ['reader'], env=plain, stdout=subprocess.PIPE, text=True)
+    writer = subprocess.run(probe + ['writer'], env=launched, capture_output=True, text=True,
+                            timeout=30)
+    out, _ = reader.communicate(timeout=30)
+    assert writer.returncode == 0, writer.stderr
+    said = json.loads(writer.stdout.strip().splitlines()[-1])
+    assert said['matched'] == 1 and json.loads(out.strip().splitlines()[-1])['received'] >= 20
+    assert said['shm'] == [], 'the launched node mapped Fast DDS shared memory'
+    assert said['udp'] and set(said['udp']) == {'127.0.0.1'}, said['udp']

@@ -15,6 +15,7 @@ from pathlib import Path
 import yaml
 
 from drift_control.params import ParamError, load_yaml
+from drift_tools.dds import transport_env
 
 CLOCK_MODES = ('realtime', 'lockstep')
 DISCOVERY_RANGES = ('LOCALHOST', 'SUBNET', 'SYSTEM_DEFAULT', 'OFF')
@@ -178,6 +179,7 @@ class RunOptions:
     bag_dir: Path | None = None            # recorder output; None = no recorder parameter
     domain_id: int = 0
     discovery_range: str = 'LOCALHOST'
+    dds_shared_memory: bool = False        # True: rmw_fastrtps's own transports (drift_tools.dds)
     python: str = sys.executable
     sim_duration: float = 0.0              # simulated seconds the simulator runs; 0: scenario's
     vehicle: str = ''                      # '' = not passed; the scenario's, else the default
@@ -277,10 +279,11 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
 
 
 def node_env(opts: RunOptions, base: dict | None = None) -> dict:
-    """The child environment: ROS domain and discovery range always set, output unbuffered."""
+    """The child environment: ROS domain and discovery range always set, DDS over UDP
+    (drift_tools.dds), output unbuffered."""
     env = dict(os.environ if base is None else base)
     env['ROS_DOMAIN_ID'] = str(opts.domain_id)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = opts.discovery_range
+    transport_env(env, opts.discovery_range, opts.config_dir, opts.dds_shared_memory)
     env['PYTHONUNBUFFERED'] = '1'
     env['RCUTILS_LOGGING_BUFFERED_STREAM'] = '0'
     # The launcher prefixes the node name; keep ROS's own line short.

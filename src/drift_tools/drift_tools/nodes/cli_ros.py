@@ -8,6 +8,7 @@ from collections import deque
 
 import yaml
 
+from drift_tools.dds import use_udp_here
 from drift_tools.operator import CliError, absolute, fill, interface_class, parse_yaml, to_plain
 
 BRIDGE_ARM = '/bridge/arm'
@@ -19,7 +20,7 @@ class Ros:
     """One short-lived node for a command; discovery waits are condition-based."""
 
     def __init__(self):
-        os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+        use_udp_here()
         import rclpy
         from rclpy.signals import SignalHandlerOptions
         self.rclpy = rclpy
