@@ -62,3 +62,26 @@ def test_sigint_is_forwarded_and_the_bag_closed(node_env, tmp_path):
     assert 'stopped (signal); exit codes: recorder=0, talker=0' in out, out
     got = read_bag(tmp_path / 'b', backend='rosbags')   # needs the footer a clean stop writes
     assert len(got['/drift/command']) > 0
+
+
+def test_a_real_time_run_is_recorded_from_its_first_step(node_env, tmp_path):
+    """The simulator in real time starts once the recorder hears every publisher, as in lock
+    step: a writer matched late keeps only 1 s for it (a bag once lacked a run's first 2 s)."""
+    bag = tmp_path / 'b'
+    proc = subprocess.run([PYTHON, str(REPO / 'scripts' / 'run_stack.py'), '--scenario',
+                           'steady_dry', '--clock', 'realtime', '--sim-duration', '1.5', '--bag',
+                           str(bag), '--no-summary', '--kill-timeout', '5'],
+                          env=node_env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    got = read_bag(bag, ['/sim/state', '/vehicle/state', '/drift/command'])
+    truth = got['/sim/state']
+    assert len(truth) == 151, len(truth)              # t = 0 and every 10 ms step to 1.5 s
+    first = truth[0].msg.header.stamp
+    assert got['/vehicle/state'][0].msg.header.stamp == first
+
+    def seconds(stamp):
+        return stamp.sec + 1e-9 * stamp.nanosec
+    # the controller was up at t = 0 (the simulator used to start before it: 0.8-1.7 s)
+    assert got.get('/drift/command'), 'no command recorded'
+    lag = seconds(got['/drift/command'][0].msg.header.stamp) - seconds(first)
+    assert 0.0 <= lag < 0.5, f'the first command {lag:.2f} s after the first state'

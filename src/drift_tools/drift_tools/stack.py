@@ -241,7 +241,7 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
     if spec.module == SIM_MODULE and opts.sim_duration:
         params['duration'] = float(opts.sim_duration)
     if spec.module == SIM_MODULE and opts.bag_dir is not None:
-        params['wait_recorder'] = True   # lock-step: no step before the bag records the truth
+        params['wait_recorder'] = True   # no step before the bag records the truth
         others = [n for n in opts.graph_nodes if n != spec.name]
         if others:   # nor before the publishers of every node are known (and so compared)
             params['wait_nodes'] = others

@@ -126,9 +126,8 @@ class SimNode(Node):
             self.create_subscription(DriftCommand, 'drift/command', self._on_command, reliable),
             self.create_subscription(DriftReference, 'drift/reference', lambda m: self._gate.
                                      offer_reference(convert.time_from_msg(m.header.stamp)), 10)]
-        # lock-step: t = 0 waits for the recorder; a car on a link sends nothing before
-        self._wait_recorder = self._wait_recorder and (
-            (self._mode == 'lockstep' and io == 'ros') or io == 'link')
+        # t = 0 waits for the recorder (lock-step and real time alike: a writer matched late
+        # keeps only 1 s for it); a car on a link sends nothing before
         self._recorder_matched = None    # topic -> publishers the recorder is matched with
         if self._wait_recorder:   # t = 0 goes out once the recorder hears every publisher
             self.create_subscription(String, '/recorder/matched', self._on_recorder_matched,
@@ -223,8 +222,8 @@ class SimNode(Node):
             self._wait_recorder = False
             if self._can is not None:
                 self._can.car.discard_backlog()
-            if self._mode == 'lockstep':
-                self._offered = time.monotonic()
+            if self._can is None:
+                self._offered = self._started = time.monotonic()   # the controller's start-up
                 self._publish(self._sim.state)   # t = 0 for the bag: state, truth and clock
         if self._mode == 'lockstep':
             if self._command is None and time.monotonic() - self._offered > STATE_REPEAT:
