@@ -401,7 +401,8 @@ def test_nodes_talk_dds_over_udp_unless_told_otherwise(tmp_path):
                      ({}, {'dds_shared_memory': True})):
         env = env_for(base, **kw)
         assert env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST', (base, kw)
-        assert env.get('FASTRTPS_DEFAULT_PROFILES_FILE') == base.get('FASTRTPS_DEFAULT_PROFILES_FILE')
+        profile_var = 'FASTRTPS_DEFAULT_PROFILES_FILE'
+        assert env.get(profile_var) == base.get(profile_var)
         assert 'FASTDDS_BUILTIN_TRANSPORTS' not in env
 
 
