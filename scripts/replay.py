@@ -19,7 +19,6 @@ latched). SIGINT or SIGTERM ends the replay cleanly.
 import argparse
 import itertools
 import json
-import os
 import signal
 import sys
 import time
