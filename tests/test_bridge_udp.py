@@ -33,6 +33,7 @@ def _netns_reason() -> str | None:
 NETNS_REASON = _netns_reason()
 
 
+@pytest.mark.realtime    # 10 ms cycles and a 50 ms release deadline, in wall-clock time
 @pytest.mark.skipif(NETNS_REASON is not None, reason=str(NETNS_REASON))
 def test_car_and_bridge_processes_over_udp_multicast(tmp_path):
     py, me = sys.executable, Path(__file__).resolve()
