@@ -66,6 +66,15 @@ def test_the_entry_s_course_yaw_only_where_the_nmpc_steers(cfg):
     assert not torque_only.build_selector().p.course_yaw_entry
 
 
+def test_the_speed_rise_leaving_a_drift_scales_with_the_named_surface_s_friction():
+    dry, wet = load_setup(scenario='exit_dry'), load_setup(scenario='exit_wet')
+    assert dry.reference.speed_rise_max == wet.reference.speed_rise_max > 0.0
+    assert dry.build_selector().p.speed_rise_max == dry.reference.speed_rise_max   # mu 1
+    assert wet.build_selector().p.speed_rise_max == pytest.approx(
+        wet.reference.speed_rise_max * wet.surface.mu)
+    assert wet.surface.mu < 1.0
+
+
 def test_unknown_vehicle_is_one_line_naming_the_known_ones():
     with pytest.raises(ParamError, match=r"vehicle 'nope'.*known vehicles: .*m3_competition"):
         load_setup(scenario='steady_dry', vehicle='nope')

@@ -119,7 +119,9 @@ class Setup:
         # lookup_many and the grid are optional: a stand-in map may offer lookup alone
         limit = sideslip_limit(self.eqmap, effective_bounds(self.vehicle, self.nmpc)) \
             if hasattr(self.eqmap, 'filled') else None
-        params = self.reference
+        # the speed may rise as fast as the tyres' grip allows: the named surface's share of it
+        params = replace(self.reference,
+                         speed_rise_max=self.reference.speed_rise_max * self.surface.mu)
         if self.mode != Mode.FULL:
             # with the driver steering the entry's faster rotation would be asked of the
             # torque alone (docs/tuning_log.md: the semi-automated entries spun more often)

@@ -65,7 +65,7 @@ class ReferenceParams:
                                   # (``Setup.build_selector``: not in TORQUE_ONLY)
     speed_rise_max: float = 0.0   # leaving a drift (and in grip after the entry) the speed
                                   # reference rises at most this fast, in time and along the
-                                  # horizon [m/s^2] (0: off)
+                                  # horizon [m/s^2] (0: off); the YAML's is per unit friction
     catch_beta: float = 0.0       # in the entry, a slide to the drift side beyond this [rad] is
                                   # caught: the reference continues from it (0: off)
     entry_lead: float = 0.0       # in the entry the sideslip reference leads the car's sideslip
