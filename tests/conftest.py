@@ -1,7 +1,7 @@
 """Shared test fixtures: ROS isolation (own domain id, localhost discovery) and the repo paths.
 
 Tests marked ``ros`` are skipped, with the reason, where rclpy or the built drift_msgs is missing.
-Under pytest-xdist (``make test`` runs two workers) tests marked ``ros`` or ``realtime`` run alone
+Under pytest-xdist (``make test``: a worker per core, at most four) tests marked ``ros`` or ``realtime`` run alone
 (``run_alone.py``).
 """
 import importlib.util

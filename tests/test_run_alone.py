@@ -1,4 +1,5 @@
 """The lock that lets ``ros``/``realtime`` tests run alone under pytest-xdist (run_alone.py)."""
+import fcntl
 import threading
 from types import SimpleNamespace
 
@@ -67,9 +68,12 @@ def test_the_same_mode_again_is_a_no_op_and_a_change_lets_go_first(locks):
     a, b, _ = locks
     a.enter(alone=True)
     a.enter(alone=True)
+    assert a.held == fcntl.LOCK_EX
     a.enter(alone=False)                 # from alone to shared: others may join now
-    b.enter(alone=False)
-    assert a.held is not None and b.held is not None
+    assert a.held == fcntl.LOCK_SH
+    order = []
+    _enter_in_thread(b, False, order, 'beside').join(5.0)
+    assert order == ['beside'], 'still exclusive after changing to shared'
 
 
 class _item(SimpleNamespace):
