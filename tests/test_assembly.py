@@ -2,6 +2,7 @@
 import json
 import re
 import shutil
+from dataclasses import replace
 
 import pytest
 
@@ -73,6 +74,15 @@ def test_the_speed_rise_leaving_a_drift_scales_with_the_named_surface_s_friction
     assert wet.build_selector().p.speed_rise_max == pytest.approx(
         wet.reference.speed_rise_max * wet.surface.mu)
     assert wet.surface.mu < 1.0
+
+
+def test_the_drift_s_speed_rise_and_fall_scale_with_the_named_surface_s_friction():
+    wet = load_setup(scenario='steady_wet')
+    wet = replace(wet, reference=replace(wet.reference, drift_speed_rise=1.0,
+                                         drift_speed_fall=1.5))
+    p = wet.build_selector().p
+    assert p.drift_speed_rise == pytest.approx(1.0 * wet.surface.mu)
+    assert p.drift_speed_fall == pytest.approx(1.5 * wet.surface.mu)
 
 
 def test_unknown_vehicle_is_one_line_naming_the_known_ones():

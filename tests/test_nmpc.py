@@ -322,7 +322,7 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
     now += p.Ts
     ctrl.step(measure(np.concatenate([x, [0.0] * 3]), now, drive_torque=T_act),
               Reference(now, eq30, Direction.LEFT), now)
-    _, _, d, _ = ctrl.ocp.unpack_params(seen[0])
+    _, _, d, _, _ = ctrl.ocp.unpack_params(seen[0])
     assert np.allclose(d, ctrl.model_error * stage_dt / p.Ts), 'added per stage'
 
 
@@ -626,6 +626,18 @@ def test_compiled_iteration_matches_interpreted(vp, params, eq30, qp):
     assert compiled[1] == interpreted[1] and compiled[2] == pytest.approx(interpreted[2], abs=1e-9)
 
 
+def assert_flag_weighs(ctrl, rows, flag: str, state: int, ratio: float):
+    """Raised, the OCP parameter ``flag`` weighs ``state`` in every stage after the first
+    ``ratio`` times as much (the squared ratio in the Gauss-Newton Hessian), nothing else."""
+    ocp = ctrl.ocp
+    H = [np.diag(ctrl._solver._hessian(ocp.pack_params(rows, 1.0, **{flag: f})).full())
+         for f in (False, True)]
+    weighed = [ocp.x(np.arange(ocp.nw), k)[state] for k in range(1, ocp.N + 1)]
+    assert np.allclose(H[1][weighed] / H[0][weighed], ratio ** 2)
+    others = np.setdiff1d(np.arange(ocp.nw), weighed)
+    assert np.array_equal(H[1][others], H[0][others])
+
+
 def test_a_flip_weighs_the_rear_wheel_speed_until_the_drift_is_steady(vp, params, eq30):
     """With ``cost.omega_R_flip`` the rear wheel speed weighs as that scale from the first
     horizon with sideslip references on both sides until they are a steady drift again (the
@@ -637,12 +649,7 @@ def test_a_flip_weighs_the_rear_wheel_speed_until_the_drift_is_steady(vp, params
     ctrl = Nmpc(vp, dataclasses.replace(params, cost=cost))
     ocp, solver = ctrl.ocp, ctrl._solver
     rows = reference_rows(Reference(0.0, eq30), ocp.N)
-    H = [np.diag(solver._hessian(ocp.pack_params(rows, 1.0, flip=f)).full())
-         for f in (False, True)]
-    wheel = [ocp.x(np.arange(ocp.nw), k)[X.OMEGA_R] for k in range(1, ocp.N + 1)]
-    assert np.allclose(H[1][wheel] / H[0][wheel], (cost.omega_R / cost.omega_R_flip) ** 2)
-    others = np.setdiff1d(np.arange(ocp.nw), wheel)
-    assert np.array_equal(H[1][others], H[0][others])
+    assert_flag_weighs(ctrl, rows, 'flip', X.OMEGA_R, cost.omega_R / cost.omega_R_flip)
 
     right = dataclasses.replace(eq30, beta=-eq30.beta, r=-eq30.r, delta=-eq30.delta)
     n = ocp.N + 1
@@ -665,6 +672,27 @@ def test_a_flip_weighs_the_rear_wheel_speed_until_the_drift_is_steady(vp, params
     assert np.allclose(compiled[0], interpreted[0], rtol=0, atol=1e-9)
     unweighted = solver._iterate(args[0], ocp.pack_params(rows, 1.0), *args[2:])
     assert not np.allclose(unweighted[0], interpreted[0], rtol=0, atol=1e-6), 'the weight acts'
+
+
+def test_a_steady_drift_slowing_down_weighs_the_speed_as_v_slow(vp, params, eq30):
+    """With ``cost.V_slow`` the speed weighs as that scale while a steady drift's reference
+    slows down along the horizon (one side, one sideslip): not in a flip, not in an entry ramp,
+    not at a constant speed. Off, the Hessian stays the constant it was."""
+    assert not Nmpc(vp, params)._slow(Reference(0.0, eq30, Direction.LEFT))
+    cost = dataclasses.replace(params.cost, V_slow=0.5)
+    ctrl = Nmpc(vp, dataclasses.replace(params, cost=cost))
+    rows = reference_rows(Reference(0.0, eq30), ctrl.ocp.N)
+    assert_flag_weighs(ctrl, rows, 'slow', X.V, cost.V / cost.V_slow)
+
+    n = ctrl.ocp.N + 1
+    slower = tuple(dataclasses.replace(eq30, V=eq30.V - 0.05 * k) for k in range(n))
+    right = dataclasses.replace(eq30, beta=-eq30.beta, r=-eq30.r, delta=-eq30.delta)
+    horizons = {'steady': (eq30,) * n, 'slowing': slower,
+                'slowing into a flip': slower[:10] + (right,) * (n - 10),
+                'slowing in a ramp': tuple(dataclasses.replace(e, beta=e.beta * (1 - 0.01 * k))
+                                           for k, e in enumerate(slower))}
+    seen = [ctrl._slow(Reference(0.0, h[0], Direction.LEFT, h)) for h in horizons.values()]
+    assert seen == [False, True, False, False]
 
 
 def test_failed_compiled_qp_names_its_status(vp, params, eq30):

@@ -525,6 +525,60 @@ def test_a_steady_drift_is_not_touched_by_the_speed_rise_limit():
         assert limited.select(st) == plain.select(st)
 
 
+def curve_change(R_from, R_to, length=150.0):
+    """A 30 deg left drift (established, no entry ramp) on an R_from arc, a 10 m clothoid, then
+    an R_to arc."""
+    prof = P.SideslipProfile(math.radians(30.0))
+    k0, k1 = 1.0 / R_from, 1.0 / R_to
+    return P.from_segments([(length, k0, k0), (10.0, k0, k1), (150.0, k1, k1)], sideslip=prof)
+
+
+def test_ahead_of_a_tighter_curve_the_speed_falls_at_drift_speed_fall_along_the_path():
+    """The stand-in map drifts R 40 m at 16.7 m/s and R 10 m at 8.4 m/s: the plan asks for
+    the tighter curve's speed from as far back as ``drift_speed_fall`` needs (v^2 = v_1^2 +
+    2 a d), the same turn driven slower (radius and sideslip kept); far before it and on it
+    the map's own speed."""
+    path, fall = curve_change(40.0, 10.0), 1.5
+    plain = ReferenceSelector(steady_circle_lookup, path, params())
+    planned = ReferenceSelector(steady_circle_lookup, path, params(drift_speed_fall=fall))
+    V_tight = math.sqrt(A_LAT * 10.0)
+    for k, s in enumerate(np.arange(0.0, 200.2, 0.2)):
+        st = state_on(path, s, t=0.02 * k)
+        a, b = plain.select(st), planned.select(st)
+        if not any(s == pytest.approx(x) for x in (20.0, 120.0, 140.0, 148.0, 200.0)):
+            continue
+        for e, f in zip(a.horizon, b.horizon):
+            assert f.V <= e.V + 1e-9
+            assert f.r / f.V == pytest.approx(e.r / e.V) and f.beta == e.beta
+        to_tight = 160.0 - s   # where the clothoid reaches R 10 m (within its 10 m)
+        if s < 50.0 or s > 170.0:
+            assert b.target == a.target
+        else:
+            assert b.target.V < a.target.V
+            assert b.target.V ** 2 - V_tight ** 2 == pytest.approx(2 * fall * to_tight, abs=25.0)
+            assert np.all(np.diff([e.V for e in b.horizon]) <= 1e-9)
+
+
+def test_in_a_drift_the_speed_reference_rises_at_most_drift_speed_rise():
+    """Onto a wider curve the map asks for its speed at once (8.4 -> 16.7 m/s); the car cannot
+    gain it while it holds the sideslip, and at the map's yaw rate it would turn the tight
+    radius. The reference rises at most ``drift_speed_rise`` per second and per stage, the same
+    turn driven slower."""
+    path, rise = curve_change(10.0, 40.0, length=40.0), 1.0
+    sel = ReferenceSelector(steady_circle_lookup, path, params(drift_speed_rise=rise))
+    V_prev = None
+    for k, s in enumerate(np.arange(30.0, 110.0, 0.2)):
+        ref = sel.select(state_on(path, s, t=0.02 * k, V=8.4))
+        stages = ref.horizon
+        assert np.all(np.diff([e.V for e in stages]) <= rise * 0.02 + 1e-9)
+        assert all(e.r / e.V == pytest.approx(float(path.curvature_at(s)), abs=0.02)
+                   for e in stages[:1])
+        if V_prev is not None:
+            assert ref.target.V <= V_prev + rise * 0.02 + 1e-9
+        V_prev = ref.target.V
+    assert V_prev < math.sqrt(A_LAT * 10.0) + rise * 0.02 * k + 1e-6 < math.sqrt(A_LAT * 40.0)
+
+
 def test_a_reference_seen_later_moves_its_horizon_on():
     """Reference.at: a reference selected for an older state, seen ``age`` later, starts its
     stages that much further on (linear between stages, the last held); at its own time it is

@@ -121,7 +121,9 @@ class Setup:
             if hasattr(self.eqmap, 'filled') else None
         # the speed may rise as fast as the tyres' grip allows: the named surface's share of it
         params = replace(self.reference,
-                         speed_rise_max=self.reference.speed_rise_max * self.surface.mu)
+                         speed_rise_max=self.reference.speed_rise_max * self.surface.mu,
+                         drift_speed_rise=self.reference.drift_speed_rise * self.surface.mu,
+                         drift_speed_fall=self.reference.drift_speed_fall * self.surface.mu)
         if self.mode != Mode.FULL:
             # with the driver steering the entry's faster rotation would be asked of the
             # torque alone (docs/tuning_log.md: the semi-automated entries spun more often)

@@ -244,7 +244,7 @@ class Nmpc:
         self._update_disturbance(x_init, ref)
         d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
         p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts,
-                            self._flip(ref))
+                            self._flip(ref), self._slow(ref))
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
@@ -291,6 +291,20 @@ class Nmpc:
         elif self._flipping and max(betas) - min(betas) < self.FLIP_STEADY:
             self._flipping = False
         return self._flipping
+
+    SLOW_DROP = 0.2   # a drift's reference slows down when its speed falls this much [m/s]
+
+    def _slow(self, ref: Reference) -> bool:
+        """Whether a steady drift's reference slows down: one side and one sideslip over the
+        whole horizon (not an entry ramp, not a flip) and its speed falling along it (a tighter
+        curve ahead). The speed is weighed lightly for the friction the map does not know;
+        slowing for a curve it must be followed."""
+        if self.params.cost.V_slow == 0.0 or not ref.horizon:
+            return False
+        betas = [e.beta for e in ref.horizon]
+        steady = (min(betas) > self.FLIP_SIDE or max(betas) < -self.FLIP_SIDE) \
+            and max(betas) - min(betas) < self.FLIP_STEADY
+        return steady and ref.horizon[-1].V < ref.horizon[0].V - self.SLOW_DROP
 
     def _braking_bound(self, V: float, ref: Reference) -> float | None:
         """Lower torque bound that keeps a slow car from braking itself to a stop.

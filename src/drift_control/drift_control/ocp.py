@@ -12,8 +12,9 @@ structure HPIPM needs. Decision vector, stage-interleaved for the structure-expl
     x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d, flip]`` (``d``: model error added per stage, for offset-free tracking; ``flip``: 1 while
-the reference flips sides, weighing the rear wheel speed as ``cost.omega_R_flip``), so one
+mu, d, flip, slow]`` (``d``: model error added per stage, for offset-free tracking; ``flip``: 1
+while the reference flips sides, weighing the rear wheel speed as ``cost.omega_R_flip``;
+``slow``: 1 while a drift's reference slows down, weighing the speed as ``cost.V_slow``), so one
 compiled solver serves every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
@@ -61,16 +62,19 @@ class CostScales:
     T_R_rate: float = 20000.0   # drive torque rate [Nm/s]
     omega_R_flip: float = 0.0   # rear wheel speed while the reference flips sides [rad/s];
                                 # 0: omega_R throughout
+    V_slow: float = 0.0         # speed while a drift's reference slows down [m/s]; 0: V throughout
     terminal_factor: float = 5.0   # terminal state cost = factor x stage state cost [-]
     torque_range: float = 0.0   # T_R_max - T_R_min the torque scales are set for [Nm]; 0: none
 
     def __post_init__(self):
         for name, value in self.__dict__.items():
-            if name not in ('torque_range', 'omega_R_flip'):
+            if name not in ('torque_range', 'omega_R_flip', 'V_slow'):
                 require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
         require(self.torque_range >= 0, 'nmpc.cost.torque_range', 'must be >= 0 (0: off)')
         require(self.omega_R_flip == 0 or 0 < self.omega_R_flip < self.omega_R,
                 'nmpc.cost.omega_R_flip', 'must be 0 (off) or in (0, omega_R): a heavier weight')
+        require(self.V_slow == 0 or 0 < self.V_slow < self.V,
+                'nmpc.cost.V_slow', 'must be 0 (off) or in (0, V): a heavier weight')
 
     def flip_extra(self) -> float:
         """Weight of the extra rear-wheel residual that makes ``omega_R`` weigh as
@@ -78,6 +82,13 @@ class CostScales:
         if self.omega_R_flip == 0:
             return 0.0
         return math.sqrt(self.omega_R_flip ** -2 - self.omega_R ** -2)
+
+    def slow_extra(self) -> float:
+        """Weight of the extra speed residual that makes ``V`` weigh as ``V_slow`` while the
+        reference slows down (0: off), as ``flip_extra``."""
+        if self.V_slow == 0:
+            return 0.0
+        return math.sqrt(self.V_slow ** -2 - self.V ** -2)
 
     def torque(self, bounds: 'Bounds') -> tuple[float, float]:
         """The scales (T_R [Nm], T_R_rate [Nm/s]) for a car with the torque ``bounds``."""
@@ -246,7 +257,7 @@ class Ocp:
         self.bounds = effective_bounds(vehicle, params)
         N, nz = params.N, NS + NU
         self.N, self.nw = N, N * nz + NS
-        self.np = (N + 1) * NREF + 1 + NXO + 1
+        self.np = (N + 1) * NREF + 1 + NXO + 2
         model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
         self.model = model
         xs, us, mu_s = ca.SX.sym('x', NS), ca.SX.sym('u', NU), ca.SX.sym('mu')
@@ -275,9 +286,9 @@ class Ocp:
                                     ['x', 'u', 'mu'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
-        refs, _, _, flip = self.unpack_params(self.p)
+        refs, _, _, flip, slow = self.unpack_params(self.p)
         c = params.cost
-        flip_extra = c.flip_extra()
+        flip_extra, slow_extra = c.flip_extra(), c.slow_extra()
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
         T_R_scale, T_R_rate_scale = c.torque(self.bounds)
         res = []
@@ -292,11 +303,15 @@ class Ocp:
                 res.append((xk[:NXO] - refs[k][:NXO]) / state_scale)
                 if flip_extra:
                     res.append(flip * flip_extra * (xk[X.OMEGA_R] - refs[k][X.OMEGA_R]))
+                if slow_extra:
+                    res.append(slow * slow_extra * (xk[X.V] - refs[k][X.V]))
         term = math.sqrt(c.terminal_factor)
         x_N = self.x(self.w, N)
         res.append(term * (x_N[:NXO] - refs[N][:NXO]) / state_scale)
         if flip_extra:
             res.append(term * flip * flip_extra * (x_N[X.OMEGA_R] - refs[N][X.OMEGA_R]))
+        if slow_extra:
+            res.append(term * slow * slow_extra * (x_N[X.V] - refs[N][X.V]))
         self.residual = ca.vertcat(*res)
         self.J = ca.sumsqr(self.residual)
 
@@ -307,7 +322,7 @@ class Ocp:
         ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small code).
         """
         nz = NS + NU
-        _, mu, d, _ = self.unpack_params(p)
+        _, mu, d, _, _ = self.unpack_params(p)
         body = ca.reshape(w[:self.N * nz], nz, self.N)
         x_next = self.F.map(self.N)(body[:NS, :], body[NS:, :], mu)
         x_next = x_next + ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
@@ -346,12 +361,13 @@ class Ocp:
         return np.concatenate([body.ravel(), np.asarray(states)[-1]])
 
     def unpack_params(self, p):
-        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu, d, flip)."""
+        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow)."""
         n = (self.N + 1) * NREF
         refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
-        return refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO]
+        return refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO], p[n + 2 + NXO]
 
-    def pack_params(self, refs, mu: float, d=None, flip: bool = False) -> np.ndarray:
+    def pack_params(self, refs, mu: float, d=None, flip: bool = False,
+                    slow: bool = False) -> np.ndarray:
         """Numeric parameter vector.
 
         Parameters
@@ -364,12 +380,15 @@ class Ocp:
             Model error added to each stage's vehicle states (V .. delta); default zero.
         flip : bool
             The reference flips sides: the rear wheel speed weighs as ``cost.omega_R_flip``.
+        slow : bool
+            A drift's reference slows down: the speed weighs as ``cost.V_slow``.
         """
         refs = np.asarray(refs, dtype=float)
         if refs.shape != (self.N + 1, NREF):
             raise ValueError(f'refs must be ({self.N + 1}, {NREF}), got {refs.shape}')
         d = np.zeros(NXO) if d is None else np.asarray(d, dtype=float)
-        return np.concatenate([refs.ravel(), [mu], d, [1.0 if flip else 0.0]])
+        return np.concatenate([refs.ravel(), [mu], d, [1.0 if flip else 0.0],
+                               [1.0 if slow else 0.0]])
 
     def bounds_for(self, x_init, hold_stages: int = 0,
                    T_R_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:

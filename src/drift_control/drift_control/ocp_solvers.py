@@ -136,7 +136,7 @@ class RtiSolver:
         X_rest = ca.MX.sym('X_rest', rest[0].sparsity())
         jac_rest = ca.MX.sym('jac_rest', rest[1].sparsity())
 
-        _, mu_p, d, _ = ocp.unpack_params(p)
+        _, mu_p, d, _, _ = ocp.unpack_params(p)
         X_0, jac_0 = stage(body[:NS, 0], body[NS:, 0], mu_p)
         X_next, jacs = ca.horzcat(X_0, X_rest), ca.horzcat(jac_0, jac_rest)
         # the gaps exactly as Ocp.gaps computes them

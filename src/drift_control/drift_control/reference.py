@@ -66,6 +66,11 @@ class ReferenceParams:
     speed_rise_max: float = 0.0   # leaving a drift (and in grip after the entry) the speed
                                   # reference rises at most this fast, in time and along the
                                   # horizon [m/s^2] (0: off); the YAML's is per unit friction
+    drift_speed_rise: float = 0.0  # in a drift after the entry (not in a flip) the speed
+                                  # reference rises at most this fast, in time and along the
+                                  # horizon [m/s^2] (0: off); the YAML's is per unit friction
+    drift_speed_fall: float = 0.0  # ... and falls ahead of a tighter curve at most this fast
+                                  # along the path (_plan_speed) [m/s^2] (0: off); the same
     catch_beta: float = 0.0       # in the entry, a slide to the drift side beyond this [rad] is
                                   # caught: the reference continues from it (0: off)
     entry_lead: float = 0.0       # in the entry the sideslip reference leads the car's sideslip
@@ -169,6 +174,7 @@ class ReferenceSelector:
         self._beta_ref = self._w = None
         self._caught = 0.0     # sideslip of a slide caught in the entry [rad]
         self.rejected = 0      # states refused as non-finite or without a pose
+        self._speed_plan = self._plan_speed() if params.drift_speed_fall > 0.0 else None
 
     def reset(self, s_hint: float | None = None) -> None:
         """Forget the previous cycle (new run): zero integrator, no rate limits, and a global
@@ -331,6 +337,17 @@ class ReferenceSelector:
             cap = last.target.V + p.speed_rise_max * dt if limited else math.inf
             horizon = _speed_rise(horizon, cap, p.speed_rise_max * p.horizon_dt)
             target = horizon[0]
+        elif after_entry and state.V > 1.0 and horizon and not any(
+                0.0 < wk < 1.0 for wk in weights):
+            # the plan scales the map's speeds first: the rise starts from the last target
+            if self._speed_plan is not None:
+                s_k = fp.s + state.V * p.horizon_dt * np.arange(len(horizon))
+                share = np.interp(self.path.lap_position(s_k), *self._speed_plan)
+                horizon = _speed_caps(horizon, [e.V * f for e, f in zip(horizon, share)])
+            if p.drift_speed_rise > 0.0:
+                cap = last.target.V + p.drift_speed_rise * dt if limited else math.inf
+                horizon = _speed_rise(horizon, cap, p.drift_speed_rise * p.horizon_dt)
+            target = horizon[0]
         flipping = any(0.0 < wk < 1.0 for wk in weights)
         in_use = flipping or after_entry or p.course_yaw_entry
         if p.course_yaw and in_use and len(horizon) > 1:   # needs stages
@@ -348,6 +365,31 @@ class ReferenceSelector:
             return last
         self._last = ref
         return ref
+
+    def _plan_speed(self, ds: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """The share of the map's drift speed the car may have along one lap of the path:
+        (s [m], share [-] at most 1).
+
+        At a given sideslip the equilibrium speed grows with the radius (about as its square
+        root): a 30 m curve is drifted at 15 m/s, a 12 m one at 9.4 m/s. The NMPC sees 0.75 s
+        ahead, too late to slow down for a tighter curve; the cap is each place's equilibrium
+        speed, lowered so the car can reach every later one at ``drift_speed_fall`` (a backward
+        pass, over two laps on a closed path). A share, not a speed: the lateral correction's
+        radius keeps its own speed."""
+        p, path = self.p, self.path
+        s = np.arange(0.0, path.length, ds)
+        K, beta = path.curvature_at(s), path.drift_beta_at(s)
+        sides = path.side_at(s) if path.side is not None else [self.side_weight(k) for k in K]
+        # a flip's own speed is not capped (its blended references are not a drift's); the
+        # cap passes through it
+        V = np.array([self.equilibrium(float(b), float(k), float(w))[0].V
+                      if w in (0.0, 1.0) else math.inf for b, k, w in zip(beta, K, sides)])
+        laps = 2 if path.closed else 1
+        V = np.tile(V, laps)
+        cap, fall = V.copy(), 2.0 * p.drift_speed_fall * ds
+        for i in range(len(V) - 2, -1, -1):
+            cap[i] = min(V[i], math.sqrt(cap[i + 1] ** 2 + fall))
+        return s, np.where(np.isinf(V), 1.0, cap / V)[:len(s)]
 
     def _steady_drift(self, fp, state: VehicleState, beta_abs: float, beta_end: float,
                       one_sided: bool) -> bool:
@@ -462,11 +504,22 @@ def _speed_rise(stages: tuple[Equilibrium, ...], cap: float,
     out = []
     for e in stages:
         if e.V > cap:
-            f = cap / e.V
-            e = Equilibrium(cap, e.beta, e.r * f, e.omega_F * f, e.omega_R * f, e.delta, e.T_R)
+            e = _slower(e, cap)
         out.append(e)
         cap = e.V + step
     return tuple(out)
+
+
+def _speed_caps(stages: tuple[Equilibrium, ...], caps) -> tuple[Equilibrium, ...]:
+    """The stages with speed at most ``caps[k]`` (``_slower``)."""
+    return tuple(_slower(e, cap) if e.V > cap else e for e, cap in zip(stages, caps))
+
+
+def _slower(e: Equilibrium, V: float) -> Equilibrium:
+    """The same turn driven at ``V``: speed, yaw rate and wheel speeds scaled together,
+    radius and sideslip kept."""
+    f = V / e.V
+    return Equilibrium(V, e.beta, e.r * f, e.omega_F * f, e.omega_R * f, e.delta, e.T_R)
 
 
 def _course_yaw(stages: tuple[Equilibrium, ...], dt: float) -> tuple[Equilibrium, ...]:
