@@ -1,7 +1,9 @@
 """Tests that keep wall-clock deadlines run alone while the rest of the suite runs in parallel.
 
 With pytest-xdist every worker takes this lock around each test: shared for an ordinary test,
-exclusive for one marked ``ros`` (real nodes in real processes, real-time rates) or ``realtime``.
+exclusive for one marked ``ros`` (real nodes in real processes, real-time rates) or ``realtime``,
+unless it is also marked ``no_rates`` (it starts ROS processes but keeps no rate or deadline: the
+colcon build, 47 s of it).
 A worker that wants it exclusive first closes a gate, so the others cannot keep it shared for
 ever; it then waits until the tests running elsewhere have ended, and no other test starts until
 it lets go. ``make test`` (``--dist loadfile``) hands all of them to one worker first, as one unit
@@ -15,7 +17,8 @@ ALONE_MARKERS = ('ros', 'realtime')
 
 
 def runs_alone(item) -> bool:
-    return any(item.get_closest_marker(name) for name in ALONE_MARKERS)
+    return (any(item.get_closest_marker(name) for name in ALONE_MARKERS)
+            and not item.get_closest_marker('no_rates'))
 
 
 class RoomLock:

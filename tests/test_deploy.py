@@ -181,6 +181,7 @@ def wait_for(proc, pattern: str, timeout: float) -> tuple[bool, str]:
 
 @pytest.mark.slow
 @pytest.mark.ros
+@pytest.mark.no_rates   # a build, and one node's first line: runs beside the other tests
 def test_colcon_build_runs_a_node_from_its_install_space(tmp_path, tools_domain_id):
     pytest.importorskip('drift_msgs.msg')
     if shutil.which('cmake') is None:

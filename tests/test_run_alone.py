@@ -87,6 +87,7 @@ class _item(SimpleNamespace):
 def test_only_consecutive_alone_tests_keep_the_room():
     assert runs_alone(_item('a', 'ros')) and runs_alone(_item('a', 'realtime'))
     assert not runs_alone(_item('a', 'slow'))
+    assert not runs_alone(_item('a', 'ros', 'no_rates')), 'no rate to keep: it shares'
     assert keep_after(_item('a', 'ros'), _item('b', 'realtime'))
     assert not keep_after(_item('a', 'ros'), _item('a')), 'an ordinary test next'
     assert not keep_after(_item('a'), _item('a'))
