@@ -678,14 +678,14 @@ def test_a_steady_drift_slowing_down_weighs_the_speed_as_v_slow(vp, params, eq30
     """With ``cost.V_slow`` the speed weighs as that scale while a steady drift's reference
     slows down along the horizon (one side, one sideslip): not in a flip, not in an entry ramp,
     not at a constant speed. Off, the Hessian stays the constant it was."""
-    assert not Nmpc(vp, params)._slow(Reference(0.0, eq30, Direction.LEFT))
+    n = params.N + 1
+    slower = tuple(dataclasses.replace(eq30, V=eq30.V - 0.05 * k) for k in range(n))
+    assert not Nmpc(vp, params)._slow(Reference(0.0, slower[0], Direction.LEFT, slower)), 'off'
     cost = dataclasses.replace(params.cost, V_slow=0.5)
     ctrl = Nmpc(vp, dataclasses.replace(params, cost=cost))
     rows = reference_rows(Reference(0.0, eq30), ctrl.ocp.N)
     assert_flag_weighs(ctrl, rows, 'slow', X.V, cost.V / cost.V_slow)
 
-    n = ctrl.ocp.N + 1
-    slower = tuple(dataclasses.replace(eq30, V=eq30.V - 0.05 * k) for k in range(n))
     right = dataclasses.replace(eq30, beta=-eq30.beta, r=-eq30.r, delta=-eq30.delta)
     horizons = {'steady': (eq30,) * n, 'slowing': slower,
                 'slowing into a flip': slower[:10] + (right,) * (n - 10),
@@ -693,6 +693,15 @@ def test_a_steady_drift_slowing_down_weighs_the_speed_as_v_slow(vp, params, eq30
                                            for k, e in enumerate(slower))}
     seen = [ctrl._slow(Reference(0.0, h[0], Direction.LEFT, h)) for h in horizons.values()]
     assert seen == [False, True, False, False]
+
+    passed = []   # and the step hands it to the solver
+    solve = ctrl._solver.solve
+    ctrl._solver.solve = lambda w0, p_, *a: passed.append(p_) or solve(w0, p_, *a)
+    x = [eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta, 0.0, 0.0, 0.0]
+    for h in (slower, (eq30,) * n):
+        ctrl.step(measure(np.array(x), 0.0, drive_torque=eq30.T_R),
+                  Reference(0.0, h[0], Direction.LEFT, h), 0.0)
+    assert [ctrl.ocp.unpack_params(p_)[4] for p_ in passed] == [1.0, 0.0]
 
 
 def test_failed_compiled_qp_names_its_status(vp, params, eq30):

@@ -65,7 +65,8 @@ class RtiSolver:
         # interior-point and ADMM QP solvers need the similar magnitudes
         self.D = ocp.variable_scale()
         # cost residuals are linear in w: the Hessian depends on p at most (a flip's weight,
-        # ``cost.omega_R_flip``), else it is a constant; gradient from a small SX function
+        # ``cost.omega_R_flip``, a slowing drift's ``cost.V_slow``), else it is a constant;
+        # gradient from a small SX function
         ws_sx = ca.SX.sym('ws', ocp.nw)
         r = ca.substitute(ocp.residual, ocp.w, self.D * ws_sx)
         Jr = ca.jacobian(r, ws_sx)

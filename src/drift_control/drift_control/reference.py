@@ -70,7 +70,7 @@ class ReferenceParams:
                                   # reference rises at most this fast, in time and along the
                                   # horizon [m/s^2] (0: off); the YAML's is per unit friction
     drift_speed_fall: float = 0.0  # ... and falls ahead of a tighter curve at most this fast
-                                  # along the path (_plan_speed) [m/s^2] (0: off); the same
+                                  # along the path (_plan_speed) [m/s^2] (0: off); per friction
     catch_beta: float = 0.0       # in the entry, a slide to the drift side beyond this [rad] is
                                   # caught: the reference continues from it (0: off)
     entry_lead: float = 0.0       # in the entry the sideslip reference leads the car's sideslip
@@ -367,15 +367,9 @@ class ReferenceSelector:
         return ref
 
     def _plan_speed(self, ds: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-        """The share of the map's drift speed the car may have along one lap of the path:
-        (s [m], share [-] at most 1).
-
-        At a given sideslip the equilibrium speed grows with the radius (about as its square
-        root): a 30 m curve is drifted at 15 m/s, a 12 m one at 9.4 m/s. The NMPC sees 0.75 s
-        ahead, too late to slow down for a tighter curve; the cap is each place's equilibrium
-        speed, lowered so the car can reach every later one at ``drift_speed_fall`` (a backward
-        pass, over two laps on a closed path). A share, not a speed: the lateral correction's
-        radius keeps its own speed."""
+        """(s [m], share [-] <= 1) along one lap: the share of the map's drift speed that
+        reaches every slower curve ahead at ``drift_speed_fall`` (the NMPC's 0.75 s see it too
+        late). A share, so the lateral correction's radius keeps its own speed."""
         p, path = self.p, self.path
         s = np.arange(0.0, path.length, ds)
         K, beta = path.curvature_at(s), path.drift_beta_at(s)
@@ -389,7 +383,8 @@ class ReferenceSelector:
         cap, fall = V.copy(), 2.0 * p.drift_speed_fall * ds
         for i in range(len(V) - 2, -1, -1):
             cap[i] = min(V[i], math.sqrt(cap[i + 1] ** 2 + fall))
-        return s, np.where(np.isinf(V), 1.0, cap / V)[:len(s)]
+        flip = np.isinf(V)
+        return s, np.divide(cap, V, out=np.ones_like(V), where=~flip)[:len(s)]
 
     def _steady_drift(self, fp, state: VehicleState, beta_abs: float, beta_end: float,
                       one_sided: bool) -> bool:
