@@ -343,7 +343,8 @@ class ReferenceSelector:
             if self._speed_plan is not None:
                 s_k = fp.s + state.V * p.horizon_dt * np.arange(len(horizon))
                 share = np.interp(self.path.lap_position(s_k), *self._speed_plan)
-                horizon = _speed_caps(horizon, [e.V * f for e, f in zip(horizon, share)])
+                horizon = tuple(_slower(e, e.V * f) if f < 1.0 else e
+                                for e, f in zip(horizon, share))
             if p.drift_speed_rise > 0.0:
                 cap = last.target.V + p.drift_speed_rise * dt if limited else math.inf
                 horizon = _speed_rise(horizon, cap, p.drift_speed_rise * p.horizon_dt)
@@ -368,8 +369,8 @@ class ReferenceSelector:
 
     def _plan_speed(self, ds: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """(s [m], share [-] <= 1) along one lap: the share of the map's drift speed that
-        reaches every slower curve ahead at ``drift_speed_fall`` (the NMPC's 0.75 s see it too
-        late). A share, so the lateral correction's radius keeps its own speed."""
+        reaches every slower curve ahead at ``drift_speed_fall`` (the NMPC's 0.75 s horizon
+        sees it too late). A share, so the lateral correction's radius keeps its own speed."""
         p, path = self.p, self.path
         s = np.arange(0.0, path.length, ds)
         K, beta = path.curvature_at(s), path.drift_beta_at(s)
@@ -503,11 +504,6 @@ def _speed_rise(stages: tuple[Equilibrium, ...], cap: float,
         out.append(e)
         cap = e.V + step
     return tuple(out)
-
-
-def _speed_caps(stages: tuple[Equilibrium, ...], caps) -> tuple[Equilibrium, ...]:
-    """The stages with speed at most ``caps[k]`` (``_slower``)."""
-    return tuple(_slower(e, cap) if e.V > cap else e for e, cap in zip(stages, caps))
 
 
 def _slower(e: Equilibrium, V: float) -> Equilibrium:
