@@ -3,12 +3,14 @@ import dataclasses
 import math
 import shutil
 
+import casadi as ca
 import numpy as np
 import pytest
 
 from drift_control.equilibrium import solve_equilibrium
 from drift_control.nmpc import Nmpc, NmpcStatus, _shift_rows, reference_rows
-from drift_control.ocp import NS, NXO, NmpcParams, Ocp, SolverParams, load_nmpc_params
+from drift_control.ocp import (NPATH, NS, NXO, S_E_Y, S_K, NmpcParams, Ocp, SolverParams,
+                               load_nmpc_params)
 from drift_control.params import ParamError, load_surface, load_vehicle
 from drift_control.signals import Direction, Equilibrium, Mode, Reference, Validity, VehicleState
 from drift_control.tyre import simple_peak_slip
@@ -322,7 +324,7 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
     now += p.Ts
     ctrl.step(measure(np.concatenate([x, [0.0] * 3]), now, drive_torque=T_act),
               Reference(now, eq30, Direction.LEFT), now)
-    _, _, d, _, _ = ctrl.ocp.unpack_params(seen[0])
+    d = ctrl.ocp.unpack_params(seen[0]).d
     assert np.allclose(d, ctrl.model_error * stage_dt / p.Ts), 'added per stage'
 
 
@@ -701,7 +703,110 @@ def test_a_steady_drift_slowing_down_weighs_the_speed_as_v_slow(vp, params, eq30
     for h in (slower, (eq30,) * n):
         ctrl.step(measure(np.array(x), 0.0, drive_torque=eq30.T_R),
                   Reference(0.0, h[0], Direction.LEFT, h), 0.0)
-    assert [ctrl.ocp.unpack_params(p_)[4] for p_ in passed] == [1.0, 0.0]
+    assert [ctrl.ocp.unpack_params(p_).slow for p_ in passed] == [1.0, 0.0]
+
+
+def path_loop(ctrl: Nmpc, plant, eq, x, seconds: float, K: float) -> np.ndarray:
+    """Closed loop on a circle of curvature ``K`` (the plant's path states), the reference
+    saying where the car is; the lateral error after each period [m]."""
+    ctrl.reset()
+    e_y = []
+    for k in range(int(round(seconds / TS))):
+        now = k * TS
+        ref = Reference(now, eq, Direction.LEFT, curvature=K, e_y=float(x[X.E_Y]),
+                        heading_error=float(x[X.PSI]))
+        res = ctrl.step(measure(x, now), ref, now)
+        for _ in range(2):
+            x = np.asarray(plant(x, [res.command.delta_rate, res.command.drive_torque],
+                                 [K, 1.0])).ravel()
+        e_y.append(float(x[X.E_Y]))
+    return np.array(e_y)
+
+
+def test_the_lateral_error_is_weighed_with_the_path_states(vp, params, plant, eq30):
+    """A car in its drift 1 m left of the circle: the NMPC that tracks the equilibrium alone
+    (the paper's) drives the offset circle, 1 m right of the path half a lap later; with
+    ``cost.e_y`` it drives back onto the path."""
+    on = Nmpc(vp, dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.1)))
+    off = Nmpc(vp, params)
+    assert (off.ocp.ns, on.ocp.ns) == (NS, NS + NPATH)
+    K = eq30.r / eq30.V
+    x = np.zeros(9)
+    x[:6] = [eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta]
+    x[X.PSI], x[X.E_Y] = -eq30.beta, 1.0   # moving along the tangent, 1 m left
+    half_lap = math.pi / eq30.r
+    offset = path_loop(off, plant, eq30, x, half_lap, K)
+    back = path_loop(on, plant, eq30, x, half_lap, K)
+    assert offset[-1] < -0.9, offset[::10]
+    assert np.max(np.abs(back[-int(1.5 / TS):])) < 0.2, back[::10]
+
+
+def test_the_lateral_error_weighs_once_the_car_drifts_in_full_mode(vp, params, eq30):
+    """The grip phase and the entry ramp are left to the reference selector: the lateral error
+    weighs from the first horizon of one steady drift since the reset (latched), and never in
+    TORQUE_ONLY, where the driver follows the path."""
+    on = dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.2))
+    ctrl, n = Nmpc(vp, on), on.N + 1
+    grip = dataclasses.replace(eq30, beta=0.0, r=0.3)
+    ramp = tuple(dataclasses.replace(eq30, beta=eq30.beta * k / n) for k in range(n))
+    horizons = ((grip,) * n, ramp, (eq30,) * n, ramp)
+    seen = [ctrl._drifting(Reference(0.0, h[0], Direction.LEFT, h)) for h in horizons]
+    assert seen == [False, False, True, True]
+    ctrl.reset()
+    assert not ctrl._drifting(Reference(0.0, grip, Direction.LEFT, (grip,) * n))
+    semi = Nmpc(vp, on, mode=Mode.TORQUE_ONLY)
+    assert not semi._drifting(Reference(0.0, eq30, Direction.LEFT, (eq30,) * n))
+
+    ocp = ctrl.ocp
+    rows = reference_rows(Reference(0.0, eq30), ocp.N)
+    H = [np.diag(ctrl._solver._hessian(ocp.pack_params(rows, 1.0, drift=f)).full())
+         for f in (False, True)]
+    weighed = [ocp.x(np.arange(ocp.nw), k)[S_E_Y] for k in range(1, ocp.N + 1)]
+    assert np.all(H[0][weighed] == 0.0) and np.all(H[1][weighed] > 0.0)
+    others = np.setdiff1d(np.arange(ocp.nw), weighed)
+    assert np.array_equal(H[1][others], H[0][others])
+
+
+def test_the_paths_curvature_reaches_each_stage_through_the_parameters(vp, params, eq30):
+    """With the path states, stage k's curvature state is the path's at stage k: the gaps
+    vanish for a plan that carries it, whatever the stages' curvatures."""
+    ocp = Ocp(vp, dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.5)))
+    N = ocp.N
+    K = np.linspace(1 / 15, -1 / 15, N + 1)
+    p = ocp.pack_params(reference_rows(Reference(0.0, eq30), N), 1.0, curvature=K)
+    x0 = [eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta, eq30.T_R, eq30.T_R,
+          -eq30.beta, 0.0, K[0]]
+    states, inputs = [np.array(x0)], np.tile([0.0, eq30.T_R], (N, 1))
+    for k in range(N):
+        nxt = np.asarray(ocp.F(states[-1], inputs[k], 1.0)).ravel()
+        nxt[S_K] += K[k + 1] - K[k]
+        states.append(nxt)
+    gaps = np.asarray(ocp.gaps(ocp.join(np.array(states), inputs), p)).ravel()
+    assert np.max(np.abs(gaps)) < 1e-9
+    assert [s[S_K] for s in states] == pytest.approx(K.tolist())
+    with pytest.raises(ParamError, match='nmpc.cost.e_y'):
+        dataclasses.replace(params.cost, e_y=-1.0)
+
+
+def test_the_lateral_error_asked_decays_from_the_cars_at_e_y_time(vp, params, eq30):
+    """With ``cost.e_y_time`` stage k is asked the car's lateral error times exp(-t_k / tau):
+    a plan along that costs nothing for it, one straight onto the path does."""
+    cost = dataclasses.replace(params.cost, e_y=0.2, e_y_time=1.0)
+    ocp = Ocp(vp, dataclasses.replace(params, cost=cost))
+    J = ca.Function('J', [ocp.w, ocp.p], [ocp.J])
+    rows = reference_rows(Reference(0.0, eq30), ocp.N)
+    states = np.zeros((ocp.N + 1, ocp.ns))
+    inputs = np.zeros((ocp.N, 2))
+    t = np.arange(ocp.N + 1) * params.dt
+
+    def e_y_cost(e_y):
+        states[:, S_E_Y] = e_y
+        w = ocp.join(states, inputs)
+        return float(J(w, ocp.pack_params(rows, 1.0, drift=True, e_y=1.5))
+                     - J(w, ocp.pack_params(rows, 1.0, drift=False, e_y=1.5)))
+
+    assert e_y_cost(1.5 * np.exp(-t / cost.e_y_time)) == pytest.approx(0.0, abs=1e-9)
+    assert e_y_cost(np.zeros_like(t)) > 1.0
 
 
 def test_failed_compiled_qp_names_its_status(vp, params, eq30):

@@ -26,7 +26,8 @@ def test_state_round_trip():
 def test_reference_round_trip_keeps_horizon_and_signs():
     ref = Reference(stamp=3.5, target=EQ, direction=Direction.RIGHT,
                     horizon=(EQ, EQ.mirrored()), curvature=-1 / 15, curvature_cmd=-0.07,
-                    s=1234.5, e_y=-0.3, heading_error=0.4, clamped=True)
+                    s=1234.5, e_y=-0.3, heading_error=0.4, clamped=True,
+                    horizon_curvature=(-1 / 15, 0.0))
     m = convert.reference_to_msg(ref, None)
     assert m.header.stamp.sec == 3 and m.header.stamp.nanosec == 500_000_000
     assert m.direction == m.DIRECTION_RIGHT

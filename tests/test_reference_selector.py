@@ -216,6 +216,10 @@ def test_horizon_sees_the_transition_coming():
     assert len(ref.horizon) == 25 and ref.horizon[0] == ref.target
     assert ref.target.r > 0 and ref.horizon[-1].r < 0, 'the last stages already drift right'
     assert np.all(np.diff([e.r for e in ref.horizon]) <= 1e-12), 'monotone towards the right'
+    # the path's own curvature at the same stages: the circle's, then the straight's
+    s_k = ref.s + 10.0 * 0.04 * np.arange(25)
+    assert ref.horizon_curvature == pytest.approx(path.curvature_at(s_k).tolist())
+    assert ref.horizon_curvature[0] == pytest.approx(1.0 / R) and ref.horizon_curvature[-1] < 0
 
 
 def test_horizon_spacing_must_match_the_nmpc_stages():
@@ -586,11 +590,13 @@ def test_a_reference_seen_later_moves_its_horizon_on():
     from drift_control.signals import Reference
     stages = tuple(Equilibrium(V=10.0 + k, beta=-0.1 * k, r=0.5, omega_F=30.0, omega_R=40.0 + k,
                                delta=0.01 * k, T_R=1000.0 + 100.0 * k) for k in range(4))
-    ref = Reference(stamp=2.0, target=stages[0], direction=Direction.LEFT, horizon=stages, s=7.0)
+    ref = Reference(stamp=2.0, target=stages[0], direction=Direction.LEFT, horizon=stages, s=7.0,
+                    horizon_curvature=(0.01, 0.02, 0.04, 0.04))
     assert ref.at(2.0, 0.03) is ref and ref.at(1.99, 0.03) is ref
     assert replace(ref, horizon=()).at(2.5, 0.03).target == stages[0]
     whole = ref.at(2.03, 0.03)   # one stage later: stages 1, 2, 3, 3
     assert [e.V for e in whole.horizon] == pytest.approx([11.0, 12.0, 13.0, 13.0])
+    assert whole.horizon_curvature == pytest.approx([0.02, 0.04, 0.04, 0.04])
     assert whole.target == whole.horizon[0] and whole.stamp == 2.0 and whole.s == 7.0
     part = ref.at(2.02, 0.03)    # two thirds of a stage: every field between its neighbours
     first = part.horizon[0]
@@ -598,6 +604,7 @@ def test_a_reference_seen_later_moves_its_horizon_on():
         a, b = getattr(stages[0], name), getattr(stages[1], name)
         assert getattr(first, name) == pytest.approx(a + 2.0 / 3.0 * (b - a)), name
     assert part.horizon[-1] == stages[-1]
+    assert part.horizon_curvature[0] == pytest.approx(0.01 + 2.0 / 3.0 * 0.01)
     assert ref.at(2.5, 0.03).horizon == (stages[-1],) * 4   # past its end: the last held
 
 

@@ -20,7 +20,7 @@ from enum import IntEnum
 import numpy as np
 
 from drift_control.feasibility import equilibrium_problem
-from drift_control.ocp import (NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp,
+from drift_control.ocp import (NREF, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp,
                               for_vehicle)
 from drift_control.ocp_solvers import make_solver, period_function
 from drift_control.pacing import PeriodGate
@@ -123,6 +123,7 @@ class Nmpc:
         self._failures = 0
         self._last: Command | None = None
         self._engaged = False                # a solve has succeeded since the reset
+        self._drifted = False                # a steady drift's horizon seen since the reset
         self._T_act = 0.0                    # modelled torque at the wheels [Nm]
         self._d = np.zeros(NXO)              # model error per control period (offset-free)
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
@@ -238,13 +239,19 @@ class Nmpc:
         # torque at the wheels: our own lag model of the requests while engaged (it knows the
         # requests still on their way), the measured torque when starting (cold)
         T_act = self._T_act if self._w is not None else measured
-        x_init = ocp.clip_initial_state([state.V, state.beta, state.r, state.omega_F,
-                                         state.omega_R, state.delta, T_act, T_last])
+        x = [state.V, state.beta, state.r, state.omega_F, state.omega_R, state.delta, T_act,
+             T_last]
+        curvature = None
+        if ocp.path:   # where the car is on the path, and the path's curvature over the horizon
+            curvature = path_curvature(ref, N)
+            x += [ref.heading_error, ref.e_y, curvature[0]]
+        x_init = ocp.clip_initial_state(x)
         self._T_act = x_init[S_T_ACT]
         self._update_disturbance(x_init, ref)
         d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
         p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts,
-                            self._flip(ref), self._slow(ref))
+                            self._flip(ref), self._slow(ref), curvature,
+                            ocp.path and self._drifting(ref), ref.e_y)
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
@@ -254,9 +261,9 @@ class Nmpc:
                 self._front_slip_band(lbw, ubw, self._guess[3], x_init[X.DELTA])
             i = X.OMEGA_R
             for floor in self._guess[4]:   # the rear wheel's floors (none when off)
-                i += NS + NU
+                i += ocp.ns + NU
                 lbw[i] = max(lbw[i], floor)
-        w0[:NS] = x_init
+        w0[:ocp.ns] = x_init
         t0 = time.perf_counter()
         try:
             out = self._solver.solve(w0, p, lbw, ubw, iterations)
@@ -291,6 +298,19 @@ class Nmpc:
         elif self._flipping and max(betas) - min(betas) < self.FLIP_STEADY:
             self._flipping = False
         return self._flipping
+
+    def _drifting(self, ref: Reference) -> bool:
+        """Whether the lateral error is weighed: in FULL mode once a horizon of one steady drift
+        (one side, one sideslip) has been seen since the reset. The grip phase and the entry
+        ramp are left to the reference selector's path following, the path in TORQUE_ONLY to
+        the driver."""
+        if self.mode != Mode.FULL:
+            return False
+        if not self._drifted:
+            betas = [e.beta for e in ref.horizon or (ref.target,)]
+            self._drifted = (min(betas) > self.FLIP_SIDE or max(betas) < -self.FLIP_SIDE) \
+                and max(betas) - min(betas) < self.FLIP_STEADY
+        return self._drifted
 
     SLOW_DROP = 0.2   # a drift's reference slows down when its speed falls this much [m/s]
 
@@ -334,7 +354,7 @@ class Nmpc:
         point (``_front_courses``, worked out with it in ``prepare``); each stage's bound is cut
         to what the steering rate can reach from the last, so the QP stays feasible.
         """
-        nz, lock, band = NS + NU, self.bounds.delta_max, self._front_slip
+        nz, lock, band = self.ocp.ns + NU, self.bounds.delta_max, self._front_slip
         step = self.bounds.delta_dot_max * self.params.dt * (1.0 - 1e-6)
         lo = hi = delta_0
         i = X.DELTA
@@ -350,7 +370,7 @@ class Nmpc:
         none without the front slip band."""
         if self._front_slip <= 0.0:
             return ()
-        nz, a = NS + NU, self._a
+        nz, a = self.ocp.ns + NU, self._a
         return tuple(front_axle_course(w0[i + X.V], w0[i + X.BETA], w0[i + X.R], a)
                      for i in range(nz, (self.params.N + 1) * nz, nz))
 
@@ -367,7 +387,7 @@ class Nmpc:
         """
         if self._rear_lock <= 0.0:
             return ()
-        nz, scale = NS + NU, (1.0 - self._rear_lock) / self._R_R
+        nz, scale = self.ocp.ns + NU, (1.0 - self._rear_lock) / self._R_R
         return tuple(scale * w0[k * nz + X.V] * math.cos(w0[k * nz + X.BETA])
                      if k >= self._rear_first else -math.inf for k in range(1, self.params.N + 1))
 
@@ -637,6 +657,13 @@ def _shift_weights(n: int, shift: float):
     return low, high, keep, frac
 
 
+def path_curvature(ref: Reference, N: int) -> np.ndarray:
+    """(N+1,) the path's curvature at each stage: ``ref.horizon_curvature`` (padded with its
+    last), else ``ref.curvature`` throughout [1/m]."""
+    K = ref.horizon_curvature or (ref.curvature,)
+    return np.asarray(K, dtype=float)[np.minimum(np.arange(N + 1), len(K) - 1)]
+
+
 def reference_rows(ref: Reference, N: int) -> np.ndarray:
     """(N+1, 7) reference rows: ``ref.horizon`` per stage (padded with its last), else target."""
     stages = ref.horizon or (ref.target,)
@@ -647,4 +674,4 @@ def reference_rows(ref: Reference, N: int) -> np.ndarray:
 
 
 __all__ = ['INPUT_NAMES', 'STATE_NAMES', 'LockstepTrigger', 'Nmpc', 'NmpcResult', 'NmpcStatus',
-           'reference_rows']
+           'path_curvature', 'reference_rows']

@@ -1,20 +1,24 @@
 """The NMPC's optimal control problem (paper section IV, Eq. 5): parameters, NLP and bounds.
 
 Multiple shooting on the vehicle states of the single-track model (``vehicle.rhs``, RK4 with
-substeps per stage); the path states are left out, path following is the reference selector's
-job. The OCP state adds two torques: ``T_act``, the drive torque at the wheels, which follows the
+substeps per stage). Path following is the reference selector's job (the paper's); with
+``cost.e_y`` the OCP state also carries the path states (heading error, lateral error and the
+path's curvature, whose change to each next stage is a parameter) and weighs the lateral error.
+The OCP state adds two torques: ``T_act``, the drive torque at the wheels, which follows the
 request ``T_R`` with the powertrain lag ``torque_lag`` (the car's engine lag and request delay;
 with 0 it is the request itself), and ``T_last``, the request of the previous stage
 (``T_last+ = T_R``), so the torque-rate penalty stays stage-wise and the QP keeps the OCP block
 structure HPIPM needs. Decision vector, stage-interleaved for the structure-exploiting solvers::
 
     w = [x_0, u_0, x_1, u_1, ..., x_{N-1}, u_{N-1}, x_N]
-    x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last),  u = (delta_dot, T_R)
+    x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last[, psi, e_y, K]),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d, flip, slow]`` (``d``: model error added per stage, for offset-free tracking; ``flip``: 1
-while the reference flips sides, weighing the rear wheel speed as ``cost.omega_R_flip``;
-``slow``: 1 while a drift's reference slows down, weighing the speed as ``cost.V_slow``), so one
+mu, d, flip, slow[, dK_0 .. dK_N-1, drift, e_y_0]]`` (``d``: model error added per stage, for
+offset-free tracking; ``flip``: 1 while the reference flips sides, weighing the rear wheel speed
+as ``cost.omega_R_flip``; ``slow``: 1 while a drift's reference slows down, weighing the speed
+as ``cost.V_slow``; with the path states ``dK``, the path's change of curvature to each next
+stage, ``drift``, 1 while the lateral error weighs, and ``e_y_0``, the car's), so one
 compiled solver serves every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
@@ -36,7 +40,10 @@ from drift_control.vehicle import N_VEHICLE, NTHETA, NU, U, X, VehicleModel, rk4
 NXO = N_VEHICLE            # vehicle states in the OCP: V, beta, r, omega_F, omega_R, delta
 S_T_ACT = NXO              # index of T_act (torque at the wheels) in an OCP state
 S_T_LAST = NXO + 1         # index of T_last (previous torque request)
-NS = NXO + 2               # OCP state size
+NS = NXO + 2               # OCP state size without the path states
+S_PSI, S_E_Y, S_K = NS, NS + 1, NS + 2   # path states, with ``cost.e_y``: heading error, lateral
+                                         # error and the path's curvature at the car
+NPATH = 3                  # path states
 NREF = 7                   # one Equilibrium: V, beta, r, omega_F, omega_R, delta, T_R
 REF_T_R = 6                # index of T_R in one reference row
 
@@ -63,14 +70,19 @@ class CostScales:
     omega_R_flip: float = 0.0   # rear wheel speed while the reference flips sides [rad/s];
                                 # 0: omega_R throughout
     V_slow: float = 0.0         # speed while a drift's reference slows down [m/s]; 0: V throughout
+    e_y: float = 0.0            # lateral error to the path [m]; 0: no path states in the OCP
+    e_y_time: float = 0.0       # ... asked to decay from the car's with this time constant [s];
+                                # 0: to vanish at once
     terminal_factor: float = 5.0   # terminal state cost = factor x stage state cost [-]
     torque_range: float = 0.0   # T_R_max - T_R_min the torque scales are set for [Nm]; 0: none
 
     def __post_init__(self):
         for name, value in self.__dict__.items():
-            if name not in ('torque_range', 'omega_R_flip', 'V_slow'):
+            if name not in ('torque_range', 'omega_R_flip', 'V_slow', 'e_y', 'e_y_time'):
                 require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
         require(self.torque_range >= 0, 'nmpc.cost.torque_range', 'must be >= 0 (0: off)')
+        require(self.e_y >= 0, 'nmpc.cost.e_y', 'must be >= 0 (0: off)')
+        require(self.e_y_time >= 0, 'nmpc.cost.e_y_time', 'must be >= 0 (0: at once)')
         require(self.omega_R_flip == 0 or 0 < self.omega_R_flip < self.omega_R,
                 'nmpc.cost.omega_R_flip', 'must be 0 (off) or in (0, omega_R): a heavier weight')
         require(self.V_slow == 0 or 0 < self.V_slow < self.V,
@@ -233,6 +245,19 @@ def effective_bounds(vehicle: VehicleParams, params: NmpcParams) -> Bounds:
     return b
 
 
+class OcpParams(NamedTuple):
+    """The runtime parameters ``p`` of an ``Ocp``, unpacked (symbolic or numeric)."""
+
+    refs: list          # reference row of each stage 0 .. N
+    mu: object          # surface friction
+    d: object           # model error per stage (V .. delta)
+    flip: object        # 1 while the reference flips sides
+    slow: object        # 1 while a drift's reference slows down
+    dK: object          # the path's change of curvature per stage (N; empty without path states)
+    drift: object       # 1 once the car drifts: the lateral error is weighed (0 without them)
+    e_y_0: object       # the car's lateral error, from which the one asked decays [m]
+
+
 class Ocp:
     """The multiple-shooting NLP as casadi SX expressions, plus packing and bounds helpers.
 
@@ -255,12 +280,16 @@ class Ocp:
         params = for_vehicle(params, vehicle)
         self.vehicle, self.params = vehicle, params
         self.bounds = effective_bounds(vehicle, params)
-        N, nz = params.N, NS + NU
-        self.N, self.nw = N, N * nz + NS
-        self.np = (N + 1) * NREF + 1 + NXO + 2
+        #: the path states (heading error, lateral error, curvature) are in the OCP
+        self.path = params.cost.e_y > 0
+        #: OCP state size
+        self.ns = ns = NS + NPATH if self.path else NS
+        N, nz = params.N, ns + NU
+        self.N, self.nw = N, N * nz + ns
+        self.np = (N + 1) * NREF + 1 + NXO + 2 + (N + 2 if self.path else 0)
         model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
         self.model = model
-        xs, us, mu_s = ca.SX.sym('x', NS), ca.SX.sym('u', NU), ca.SX.sym('mu')
+        xs, us, mu_s = ca.SX.sym('x', ns), ca.SX.sym('u', NU), ca.SX.sym('mu')
         # the OCP integrates the first N_VEHICLE model states (path states do not feed back: they
         # are held at zero) and, with a powertrain lag, the torque at the wheels
         lag = params.torque_lag
@@ -274,10 +303,23 @@ class Ocp:
         theta = ca.vertcat(0.0, mu_s)   # curvature unused: no path states in the OCP
         x_end = rk4_step(f7, xs[:NXO + 1], us, theta, params.dt, params.substeps)
         T_act_end = x_end[NXO] if lag > 0 else us[U.T_R]
+        x_next = ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])
+        if self.path:   # the same stage with the heading and lateral errors on a path whose
+            # curvature is the state K (held over the stage; the next stage's comes from p)
+            x10 = ca.SX.sym('x10', NXO + 3)
+            x9p = ca.vertcat(x10[:NXO], x10[NXO + 1:], 0.0)
+            dx = model.f(x9p, ca.vertcat(u_req[U.DELTA_DOT], x10[NXO] if lag > 0
+                                         else u_req[U.T_R]), th)
+            T_dot10 = (u_req[U.T_R] - x10[NXO]) / lag if lag > 0 else 0.0
+            f10 = ca.Function('f10', [x10, u_req, th],
+                              [ca.vertcat(dx[:NXO], T_dot10, dx[X.PSI], dx[X.E_Y])])
+            start = ca.vertcat(xs[:NXO + 1], xs[S_PSI], xs[S_E_Y])
+            x_end = rk4_step(f10, start, us, ca.vertcat(xs[S_K], mu_s), params.dt,
+                             params.substeps)
+            x_next = ca.vertcat(x_end[:NXO], x_end[NXO] if lag > 0 else us[U.T_R], us[U.T_R],
+                                x_end[NXO + 1:], xs[S_K])
         #: one stage, ``F(x, u, mu) -> x_next`` on the OCP state (T_last+ = T_R)
-        self.F = ca.Function('F', [xs, us, mu_s],
-                             [ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])],
-                             ['x', 'u', 'mu'], ['x_next'])
+        self.F = ca.Function('F', [xs, us, mu_s], [x_next], ['x', 'u', 'mu'], ['x_next'])
         # one control period, RK4 steps no longer than the stage's: where the next state should be
         period_steps = max(1, math.ceil(params.substeps * params.Ts / params.dt - 1e-9))
         x_period = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, period_steps)
@@ -286,11 +328,14 @@ class Ocp:
                                     ['x', 'u', 'mu'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
-        refs, _, _, flip, slow = self.unpack_params(self.p)
+        refs, _, _, flip, slow, _, drift, e_y_0 = self.unpack_params(self.p)
         c = params.cost
         flip_extra, slow_extra = c.flip_extra(), c.slow_extra()
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
         T_R_scale, T_R_rate_scale = c.torque(self.bounds)
+        # the lateral error asked of stage k: the car's, decayed over k stages
+        decay = [math.exp(-k * params.dt / c.e_y_time) if c.e_y_time > 0 else 0.0
+                 for k in range(N + 1)]
         res = []
         for k in range(N):   # every residual is linear in w: the GN Hessian depends on p at most
             xk, uk = self.x(self.w, k), self.u(self.w, k)
@@ -305,6 +350,8 @@ class Ocp:
                     res.append(flip * flip_extra * (xk[X.OMEGA_R] - refs[k][X.OMEGA_R]))
                 if slow_extra:
                     res.append(slow * slow_extra * (xk[X.V] - refs[k][X.V]))
+                if self.path:
+                    res.append(drift * (xk[S_E_Y] - decay[k] * e_y_0) / c.e_y)
         term = math.sqrt(c.terminal_factor)
         x_N = self.x(self.w, N)
         res.append(term * (x_N[:NXO] - refs[N][:NXO]) / state_scale)
@@ -312,27 +359,41 @@ class Ocp:
             res.append(term * flip * flip_extra * (x_N[X.OMEGA_R] - refs[N][X.OMEGA_R]))
         if slow_extra:
             res.append(term * slow * slow_extra * (x_N[X.V] - refs[N][X.V]))
+        if self.path:
+            res.append(term * drift * (x_N[S_E_Y] - decay[N] * e_y_0) / c.e_y)
         self.residual = ca.vertcat(*res)
         self.J = ca.sumsqr(self.residual)
 
     def gaps(self, w, p):
-        """Shooting gaps ``F(x_k, u_k, mu) + d - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u - x+``).
+        """Shooting gaps ``F(x_k, u_k, mu) + o_k - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u -
+        x+``), ``o_k`` the ``offsets``.
 
-        ``d`` is the estimated model error of one stage (offset-free tracking, ``Nmpc``). ``w`` and
-        ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small code).
+        ``w`` and ``p`` may be SX (the stage is inlined) or MX (one mapped stage function: small
+        code).
         """
-        nz = NS + NU
-        _, mu, d, _, _ = self.unpack_params(p)
+        ns, nz = self.ns, self.ns + NU
+        mu = self.unpack_params(p).mu
         body = ca.reshape(w[:self.N * nz], nz, self.N)
-        x_next = self.F.map(self.N)(body[:NS, :], body[NS:, :], mu)
-        x_next = x_next + ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
-        x_after = ca.horzcat(body[:NS, 1:], w[self.N * nz:])
+        x_next = self.F.map(self.N)(body[:ns, :], body[ns:, :], mu) + self.offsets(p)
+        x_after = ca.horzcat(body[:ns, 1:], w[self.N * nz:])
         return ca.vec(x_next - x_after)
+
+    def offsets(self, p):
+        """(ns, N) what each stage adds to the model's next state: ``d``, the estimated model
+        error of one stage (offset-free tracking, ``Nmpc``), and with the path states the path's
+        change of curvature to the next stage."""
+        _, _, d, _, _, dK, _, _ = self.unpack_params(p)
+        if not self.path:
+            return ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
+        return ca.vertcat(ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO + NPATH - 1)), 1, self.N),
+                          ca.reshape(dK, 1, self.N))
 
     # --- layout -------------------------------------------------------------------------------
     def state_scale(self) -> np.ndarray:
-        """Typical magnitudes of one OCP state (V, beta, r, omega_F, omega_R, delta, T_act, T_last)."""
-        return np.array([10.0, 0.5, 0.5, 30.0, 30.0, 0.3, 1000.0, 1000.0])
+        """Typical magnitudes of one OCP state (V, beta, r, omega_F, omega_R, delta, T_act, T_last
+        and the path states)."""
+        scale = np.array([10.0, 0.5, 0.5, 30.0, 30.0, 0.3, 1000.0, 1000.0])
+        return np.concatenate([scale, [0.5, 1.0, 0.05]]) if self.path else scale
 
     def variable_scale(self) -> np.ndarray:
         """Typical magnitudes of every entry of ``w``, for solver scaling."""
@@ -341,33 +402,40 @@ class Ocp:
 
     def x(self, w, k: int):
         """State of stage ``k`` in ``w`` (symbolic or numeric)."""
-        i = k * (NS + NU)
-        return w[i:i + NS]
+        i = k * (self.ns + NU)
+        return w[i:i + self.ns]
 
     def u(self, w, k: int):
         """Input of stage ``k`` in ``w``."""
-        i = k * (NS + NU) + NS
+        i = k * (self.ns + NU) + self.ns
         return w[i:i + NU]
 
     def split(self, w) -> tuple[np.ndarray, np.ndarray]:
-        """Numeric ``w`` -> OCP states (N+1, NS) and inputs (N, 2)."""
+        """Numeric ``w`` -> OCP states (N+1, ns) and inputs (N, 2)."""
         w = np.asarray(w, dtype=float).ravel()
-        body = w[:-NS].reshape(self.N, NS + NU)
-        return np.vstack([body[:, :NS], w[-NS:]]), body[:, NS:].copy()
+        ns = self.ns
+        body = w[:-ns].reshape(self.N, ns + NU)
+        return np.vstack([body[:, :ns], w[-ns:]]), body[:, ns:].copy()
 
     def join(self, states, inputs) -> np.ndarray:
-        """OCP states (N+1, NS) and inputs (N, 2) -> ``w``."""
+        """OCP states (N+1, ns) and inputs (N, 2) -> ``w``."""
         body = np.hstack([np.asarray(states)[:-1], np.asarray(inputs)])
         return np.concatenate([body.ravel(), np.asarray(states)[-1]])
 
-    def unpack_params(self, p):
-        """Symbolic ``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow)."""
+    def unpack_params(self, p) -> 'OcpParams':
+        """``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow, dK, drift, e_y_0); without the path
+        states ``dK`` is empty and ``drift``, ``e_y_0`` 0."""
         n = (self.N + 1) * NREF
         refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
-        return refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO], p[n + 2 + NXO]
+        i = n + 3 + NXO
+        dK, drift, e_y_0 = ((p[i:i + self.N], p[i + self.N], p[i + self.N + 1]) if self.path
+                            else (p[0:0], 0.0, 0.0))
+        return OcpParams(refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO], p[n + 2 + NXO], dK,
+                         drift, e_y_0)
 
     def pack_params(self, refs, mu: float, d=None, flip: bool = False,
-                    slow: bool = False) -> np.ndarray:
+                    slow: bool = False, curvature=None, drift: bool = False,
+                    e_y: float = 0.0) -> np.ndarray:
         """Numeric parameter vector.
 
         Parameters
@@ -382,17 +450,26 @@ class Ocp:
             The reference flips sides: the rear wheel speed weighs as ``cost.omega_R_flip``.
         slow : bool
             A drift's reference slows down: the speed weighs as ``cost.V_slow``.
+        curvature : array (N+1,), optional
+            The path's curvature at each stage [1/m] (with the path states; default straight).
+        drift : bool
+            The car drifts (with the path states): the lateral error is weighed.
+        e_y : float
+            The car's lateral error [m], from which stage k's decays (``cost.e_y_time``).
         """
         refs = np.asarray(refs, dtype=float)
         if refs.shape != (self.N + 1, NREF):
             raise ValueError(f'refs must be ({self.N + 1}, {NREF}), got {refs.shape}')
         d = np.zeros(NXO) if d is None else np.asarray(d, dtype=float)
-        return np.concatenate([refs.ravel(), [mu], d, [1.0 if flip else 0.0],
-                               [1.0 if slow else 0.0]])
+        parts = [refs.ravel(), [mu], d, [1.0 if flip else 0.0], [1.0 if slow else 0.0]]
+        if self.path:
+            K = np.zeros(self.N + 1) if curvature is None else np.asarray(curvature, dtype=float)
+            parts += [np.diff(K), [1.0 if drift else 0.0, e_y]]
+        return np.concatenate(parts)
 
     def bounds_for(self, x_init, hold_stages: int = 0,
                    T_R_min: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (all NS); delta, delta_dot, T_R limited.
+        """Bounds (lbw, ubw): x_0 fixed to ``x_init`` (all ``ns``); delta, delta_dot, T_R limited.
 
         ``hold_stages`` first stages get ``delta_dot = 0`` (a driver who holds the wheel);
         ``T_R_min`` raises the lower torque bound of every stage (never above ``T_R_max``).
@@ -401,14 +478,15 @@ class Ocp:
         if T_R_min is not None:
             b = b._replace(T_R_min=min(max(b.T_R_min, T_R_min), b.T_R_max))
         lb, ub = np.full(self.nw, -np.inf), np.full(self.nw, np.inf)
-        nz = NS + NU
+        ns = self.ns
+        nz = ns + NU
         # strided slices: every stage's entry (N + 1 states, N inputs fit in nw = N nz + NS)
         lb[X.DELTA::nz], ub[X.DELTA::nz] = -b.delta_max, b.delta_max
-        rate = NS + U.DELTA_DOT
+        rate = ns + U.DELTA_DOT
         lb[rate::nz], ub[rate::nz] = -b.delta_dot_max, b.delta_dot_max
         lb[rate:rate + hold_stages * nz:nz] = ub[rate:rate + hold_stages * nz:nz] = 0.0
-        lb[NS + U.T_R::nz], ub[NS + U.T_R::nz] = b.T_R_min, b.T_R_max
-        lb[:NS] = ub[:NS] = x_init
+        lb[ns + U.T_R::nz], ub[ns + U.T_R::nz] = b.T_R_min, b.T_R_max
+        lb[:ns] = ub[:ns] = x_init
         return lb, ub
 
     def clip_initial_state(self, x_init) -> np.ndarray:
@@ -422,5 +500,5 @@ class Ocp:
 
 
 __all__ = ['Bounds', 'CostScales', 'NmpcLimits', 'NmpcParams', 'Ocp', 'SolverParams',
-           'effective_bounds', 'for_vehicle', 'load_nmpc_params', 'NREF', 'NS', 'NXO', 'S_T_ACT',
-           'S_T_LAST']
+           'effective_bounds', 'for_vehicle', 'load_nmpc_params', 'NPATH', 'NREF', 'NS', 'NXO',
+           'OcpParams', 'S_E_Y', 'S_K', 'S_PSI', 'S_T_ACT', 'S_T_LAST']

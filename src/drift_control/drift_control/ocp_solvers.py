@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 
 from drift_control.compiled import HPIPM_FLAGS, CompiledFunction, build_cached
-from drift_control.ocp import NREF, NS, NXO, Ocp, SolverParams
+from drift_control.ocp import NREF, Ocp, SolverParams
 from drift_control.params import cache_dir
 from drift_control.vehicle import NU
 
@@ -84,7 +84,7 @@ class RtiSolver:
         self.qp = self._conic(A.sparsity())
         self.iteration = None
         # what ``prepare`` linearised: the guess's stages 1 .. N-1 and mu
-        self._linearised = slice(NS + NU, ocp.N * (NS + NU))
+        self._linearised = slice(ocp.ns + NU, ocp.N * (ocp.ns + NU))
         self._mu_index = (ocp.N + 1) * NREF
         self._prepared: tuple[np.ndarray, float] | None = None
         if sp.codegen and sp.qp_solver in _CODEGEN_QP:
@@ -98,7 +98,8 @@ class RtiSolver:
         sp, N = self.sp, self.ocp.N
         opts = qp_options(sp)
         if sp.qp_solver == 'hpipm':
-            opts.update({'N': N, 'nx': [NS] * (N + 1), 'nu': [NU] * N + [0], 'ng': [0] * (N + 1)})
+            opts.update({'N': N, 'nx': [self.ocp.ns] * (N + 1), 'nu': [NU] * N + [0],
+                         'ng': [0] * (N + 1)})
         opts['error_on_fail'] = False
         return ca.conic('nmpc_qp', sp.qp_solver, {'h': self.H_fn.sparsity_out(0), 'a': a_sparsity},
                         opts)
@@ -117,9 +118,10 @@ class RtiSolver:
         share their subexpressions: ~40 % less work than differentiating the mapped MX gaps,
         equal to rounding), mapped over the stages.
         """
-        ocp, N, nz = self.ocp, self.ocp.N, NS + NU
+        ocp, N, ns = self.ocp, self.ocp.N, self.ocp.ns
+        nz = ns + NU
         S = ocp.state_scale()
-        x, u, mu = ca.SX.sym('x', NS), ca.SX.sym('u', NU), ca.SX.sym('mu')
+        x, u, mu = ca.SX.sym('x', ns), ca.SX.sym('u', NU), ca.SX.sym('mu')
         xu = ca.vertcat(x, u)
         x_next = ocp.F(x, u, mu)
         # seeds D e_j as the chain rule through w = D ws gives them; rows scaled like the gaps
@@ -132,21 +134,20 @@ class RtiSolver:
         mu_s = ca.MX.sym('mu')
         w = self.D * ws
         body = ca.reshape(w[:N * nz], nz, N)
-        rest = stage.map(N - 1)(body[:NS, 1:], body[NS:, 1:], mu_s)
+        rest = stage.map(N - 1)(body[:ns, 1:], body[ns:, 1:], mu_s)
         prepare = ca.Function('nmpc_rti_prepare', [ws, mu_s], list(rest))
         X_rest = ca.MX.sym('X_rest', rest[0].sparsity())
         jac_rest = ca.MX.sym('jac_rest', rest[1].sparsity())
 
-        _, mu_p, d, _, _ = ocp.unpack_params(p)
-        X_0, jac_0 = stage(body[:NS, 0], body[NS:, 0], mu_p)
+        X_0, jac_0 = stage(body[:ns, 0], body[ns:, 0], ocp.unpack_params(p).mu)
         X_next, jacs = ca.horzcat(X_0, X_rest), ca.horzcat(jac_0, jac_rest)
         # the gaps exactly as Ocp.gaps computes them
-        X_next = X_next + ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, N)
-        X_after = ca.horzcat(body[:NS, 1:], w[N * nz:])
+        X_next = X_next + ocp.offsets(p)
+        X_after = ca.horzcat(body[:ns, 1:], w[N * nz:])
         gap = ca.vec(X_next - X_after) / np.tile(S, N)
-        minus_eye = -ca.DM.eye(NS)   # d gap_k / d x_{k+1}: -D/S = -1 (D is S for states)
-        A = ca.vertcat(*[ca.horzcat(ca.MX(NS, k * nz), jacs[:, k * nz:(k + 1) * nz], minus_eye,
-                                    ca.MX(NS, ocp.nw - (k + 1) * nz - NS)) for k in range(N)])
+        minus_eye = -ca.DM.eye(ns)   # d gap_k / d x_{k+1}: -D/S = -1 (D is S for states)
+        A = ca.vertcat(*[ca.horzcat(ca.MX(ns, k * nz), jacs[:, k * nz:(k + 1) * nz], minus_eye,
+                                    ca.MX(ns, ocp.nw - (k + 1) * nz - ns)) for k in range(N)])
         grad, J = grad_fn(ws, p)
         self._qp_same = self._conic(A.sparsity())   # the QP as compiled, for a failure's status
         # the generated HPIPM reads its initial guesses: zeros, as the interpreted call passes
@@ -287,7 +288,8 @@ class NlpSolver:
     def _options(self, sp: SolverParams, max_iter: int) -> dict:
         common = {'print_time': False, 'error_on_fail': False}
         N = self.ocp.N
-        structure = {'N': N, 'nx': [NS] * (N + 1), 'nu': [NU] * N + [0], 'ng': [0] * (N + 1)}
+        structure = {'N': N, 'nx': [self.ocp.ns] * (N + 1), 'nu': [NU] * N + [0],
+                     'ng': [0] * (N + 1)}
         if sp.method == 'sqp':
             qp_opts = qp_options(sp)
             if sp.qp_solver == 'hpipm':

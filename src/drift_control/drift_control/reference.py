@@ -356,9 +356,13 @@ class ReferenceSelector:
             target = horizon[0]
         self._steady = p.curvature_bias_time > 0.0 and self._steady_drift(
             fp, state, beta_abs, beta_end, after_entry and not flipping)
+        # the path's own curvature at the stages (the NMPC's path states, ``cost.e_y``)
+        K_path = tuple(self.path.curvature_at(
+            fp.s + max(state.V, 0.0) * p.horizon_dt * np.arange(len(horizon))).tolist())
         ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
                         curvature=fp.K, curvature_cmd=K_cmd, s=fp.s, e_y=fp.e_y,
-                        heading_error=fp.heading_error, clamped=clamped)
+                        heading_error=fp.heading_error, clamped=clamped,
+                        horizon_curvature=K_path)
         if not ref.is_finite():   # a lookup returned NaN: never hand that on
             self.rejected += 1
             self._warn.warning('nan', 'reference: lookup gave a non-finite equilibrium at '
@@ -543,7 +547,8 @@ def mirrored_reference(ref: Reference) -> Reference:
     return replace(ref, target=ref.target.mirrored(), direction=Direction(-int(ref.direction)),
                    horizon=tuple(e.mirrored() for e in ref.horizon), curvature=-ref.curvature,
                    curvature_cmd=-ref.curvature_cmd, e_y=-ref.e_y,
-                   heading_error=-ref.heading_error)
+                   heading_error=-ref.heading_error,
+                   horizon_curvature=tuple(-K for K in ref.horizon_curvature))
 
 
 __all__ = ['Lookup', 'ReferenceParams', 'ReferenceSelector', 'check_horizon_spacing',

@@ -160,7 +160,8 @@ class Reference:
     """What the reference selector hands the NMPC each cycle.
 
     ``horizon`` optionally holds one equilibrium per NMPC stage (from the predicted arc length);
-    empty means "hold ``target`` over the horizon".
+    empty means "hold ``target`` over the horizon". ``horizon_curvature`` is the path's own
+    curvature at those stages (empty: ``curvature`` over the horizon).
     """
 
     stamp: float
@@ -173,6 +174,7 @@ class Reference:
     e_y: float = 0.0             # lateral error, positive left of the path [m]
     heading_error: float = 0.0   # vehicle yaw minus path tangent angle [rad]
     clamped: bool = False        # the map lookup left the grid and was clamped
+    horizon_curvature: tuple[float, ...] = ()   # path curvature at each horizon stage [1/m]
 
     def at(self, now: float, stage_dt: float) -> 'Reference':
         """This reference as seen ``now - stamp`` seconds after the state it was selected for:
@@ -183,7 +185,8 @@ class Reference:
         if not shift > 0.0 or not self.horizon:
             return self
         stages, last = self.horizon, len(self.horizon) - 1
-        moved = []
+        K = self.horizon_curvature
+        moved, moved_K = [], []
         for k in range(len(stages)):
             x = min(k + shift, float(last))
             i = min(int(x), last - 1) if last > 0 else 0
@@ -193,7 +196,10 @@ class Reference:
                 a.V + f * (b.V - a.V), a.beta + f * (b.beta - a.beta), a.r + f * (b.r - a.r),
                 a.omega_F + f * (b.omega_F - a.omega_F), a.omega_R + f * (b.omega_R - a.omega_R),
                 a.delta + f * (b.delta - a.delta), a.T_R + f * (b.T_R - a.T_R)))
-        return replace(self, target=moved[0], horizon=tuple(moved))
+            if len(K) == len(stages):
+                moved_K.append(K[i] + f * (K[min(i + 1, last)] - K[i]))
+        return replace(self, target=moved[0], horizon=tuple(moved),
+                       horizon_curvature=tuple(moved_K) if moved_K else K)
 
     def is_finite(self) -> bool:
         # asked by the selector, the NMPC and the supervisor each cycle: worked out once (frozen)

@@ -80,7 +80,7 @@ def reference_to_msg(ref: Reference, stamp=None, frame_id: str = MAP_FRAME) -> m
         direction=int(ref.direction), target=equilibrium_to_msg(ref.target),
         horizon=[equilibrium_to_msg(e) for e in ref.horizon], curvature=ref.curvature,
         curvature_cmd=ref.curvature_cmd, s=ref.s, e_y=ref.e_y, heading_error=ref.heading_error,
-        clamped=bool(ref.clamped))
+        clamped=bool(ref.clamped), horizon_curvature=list(ref.horizon_curvature))
     _header(m.header, stamp, ref.stamp, frame_id)
     return m
 
@@ -92,7 +92,7 @@ def reference_from_msg(m: msg.DriftReference) -> Reference:
         direction=Direction(int(m.direction)),
         horizon=tuple(equilibrium_from_msg(e) for e in m.horizon), curvature=m.curvature,
         curvature_cmd=m.curvature_cmd, s=m.s, e_y=m.e_y, heading_error=m.heading_error,
-        clamped=bool(m.clamped))
+        clamped=bool(m.clamped), horizon_curvature=tuple(float(K) for K in m.horizon_curvature))
 
 
 def command_to_msg(cmd: Command, stamp=None, frame_id: str = BODY_FRAME) -> msg.DriftCommand:
