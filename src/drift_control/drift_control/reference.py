@@ -323,7 +323,7 @@ class ReferenceSelector:
         if limited and self._w is not None:
             w = _limit(self._w, w, p.side_rate_max * dt)
         self._w = w
-        horizon, weights, beta_end, (target, direction, clamped) = self._horizon(
+        horizon, weights, beta_end, K_path, (target, direction, clamped) = self._horizon(
             fp.s, state.V, correction, (K_cmd, beta_abs, w))
         clamped = clamped or abs(K_raw) > k_max
         if clamped:
@@ -356,9 +356,6 @@ class ReferenceSelector:
             target = horizon[0]
         self._steady = p.curvature_bias_time > 0.0 and self._steady_drift(
             fp, state, beta_abs, beta_end, after_entry and not flipping)
-        # the path's own curvature at the stages (the NMPC's path states, ``cost.e_y``)
-        K_path = tuple(self.path.curvature_at(
-            fp.s + max(state.V, 0.0) * p.horizon_dt * np.arange(len(horizon))).tolist())
         ref = Reference(stamp=state.stamp, target=target, direction=direction, horizon=horizon,
                         curvature=fp.K, curvature_cmd=K_cmd, s=fp.s, e_y=fp.e_y,
                         heading_error=fp.heading_error, clamped=clamped,
@@ -428,17 +425,20 @@ class ReferenceSelector:
 
     def _horizon(self, s, V, correction, start):
         """Equilibria at ``s + V k dt`` for k = 0..N-1 (stage 0 at ``start``), same limits,
-        their left weights, the last stage's sideslip magnitude [rad] and stage 0's
-        ``equilibrium()``: (equilibrium, direction, clamped). The map is looked up once."""
+        their left weights, the last stage's sideslip magnitude [rad], the path's own curvature
+        at the stages (the NMPC's path states, ``cost.e_y``) and stage 0's ``equilibrium()``:
+        (equilibrium, direction, clamped). The map is looked up once."""
         p, h = self.p, self.p.horizon_dt
         (K, beta, w) = start
         if p.horizon_steps == 0:
-            return (), (w,), beta, self.equilibrium(beta, K, w)
+            return (), (w,), beta, (), self.equilibrium(beta, K, w)
         weights, queries = [w], [(beta, K, w)]
         k_max = 1.0 / p.radius_min
         # the path along the whole horizon in one call each; the limits run stage by stage
-        s_k = s + max(V, 0.0) * np.arange(1, p.horizon_steps) * h
-        K_paths, betas = self.path.curvature_at(s_k), self.path.beta_at(s_k)
+        s_all = s + max(V, 0.0) * np.arange(p.horizon_steps) * h
+        K_all = self.path.curvature_at(s_all)
+        s_k, K_paths = s_all[1:], K_all[1:]
+        betas = self.path.beta_at(s_k)
         if self._caught > 0.0:   # a caught slide holds the stages still in the entry
             floor = np.minimum(self._caught, self.path.drift_beta_at(s_k))
             betas = np.where(s_k < self.path.sideslip.entry_end, np.maximum(betas, floor), betas)
@@ -464,7 +464,8 @@ class ReferenceSelector:
             queries.append((beta, K, w))
             weights.append(w)
         stages = self._equilibria(queries)
-        return tuple(eq for eq, _, _ in stages), tuple(weights), beta, stages[0]
+        return (tuple(eq for eq, _, _ in stages), tuple(weights), beta, tuple(K_all.tolist()),
+                stages[0])
 
     def _equilibria(self, queries):
         """``[equilibrium(beta_abs, K_cmd, w) for ... in queries]``, the map looked up once."""
