@@ -750,12 +750,12 @@ def test_the_lateral_error_weighs_once_the_car_drifts_in_full_mode(vp, params, e
     grip = dataclasses.replace(eq30, beta=0.0, r=0.3)
     ramp = tuple(dataclasses.replace(eq30, beta=eq30.beta * k / n) for k in range(n))
     horizons = ((grip,) * n, ramp, (eq30,) * n, ramp)
-    seen = [ctrl._drifting(Reference(0.0, h[0], Direction.LEFT, h)) for h in horizons]
+    seen = [ctrl._drifting(Reference(0.0, h[0], Direction.LEFT, h), 0.0) for h in horizons]
     assert seen == [False, False, True, True]
     ctrl.reset()
-    assert not ctrl._drifting(Reference(0.0, grip, Direction.LEFT, (grip,) * n))
+    assert not ctrl._drifting(Reference(0.0, grip, Direction.LEFT, (grip,) * n), 0.0)
     semi = Nmpc(vp, on, mode=Mode.TORQUE_ONLY)
-    assert not semi._drifting(Reference(0.0, eq30, Direction.LEFT, (eq30,) * n))
+    assert not semi._drifting(Reference(0.0, eq30, Direction.LEFT, (eq30,) * n), 0.0)
 
     ocp = ctrl.ocp
     rows = reference_rows(Reference(0.0, eq30), ocp.N)
@@ -765,6 +765,23 @@ def test_the_lateral_error_weighs_once_the_car_drifts_in_full_mode(vp, params, e
     assert np.all(H[0][weighed] == 0.0) and np.all(H[1][weighed] > 0.0)
     others = np.setdiff1d(np.arange(ocp.nw), weighed)
     assert np.array_equal(H[1][others], H[0][others])
+
+
+def test_the_lateral_error_weighs_only_around_a_flip_with_e_y_after_flip(vp, params, eq30):
+    """With ``cost.e_y_after_flip`` the lateral error weighs from a flip's first horizon (both
+    sides, or between them) until that long after its last, once the car has drifted."""
+    cost = dataclasses.replace(params.cost, e_y=0.2, e_y_after_flip=3.0)
+    ctrl, n = Nmpc(vp, dataclasses.replace(params, cost=cost)), params.N + 1
+    left, right = (eq30,) * n, (eq30.mirrored(),) * n
+    flip = tuple(eq30 if k < n // 2 else eq30.mirrored() for k in range(n))
+    seen = [ctrl._drifting(Reference(t, h[0], Direction.LEFT, h), t)
+            for t, h in ((0.0, left), (5.0, left), (6.0, flip), (6.5, right), (8.9, right),
+                         (9.1, right), (20.0, right))]
+    assert seen == [False, False, True, True, True, False, False]
+    ctrl.reset()   # a flip before the first steady drift is the entry's: not weighed
+    assert not ctrl._drifting(Reference(0.0, flip[0], Direction.NONE, flip), 0.0)
+    with pytest.raises(ParamError, match='nmpc.cost.e_y_after_flip'):
+        dataclasses.replace(params.cost, e_y_after_flip=-1.0)
 
 
 def test_the_paths_curvature_reaches_each_stage_through_the_parameters(vp, params, eq30):

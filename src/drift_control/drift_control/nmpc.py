@@ -131,6 +131,7 @@ class Nmpc:
         self._guess: tuple | None = None           # (solution, age, the warm start from it,
                                                    # its front axle courses, rear wheel floors)
         self._flipping = False                     # the reference flips sides (latched)
+        self._flip_seen = -math.inf                # a horizon not on one side: when last [s]
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
         self.inputs.reset()
@@ -251,7 +252,7 @@ class Nmpc:
         d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
         p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts,
                             self._flip(ref), self._slow(ref), curvature,
-                            ocp.path and self._drifting(ref), ref.e_y)
+                            ocp.path and self._drifting(ref, now), ref.e_y)
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
@@ -299,18 +300,24 @@ class Nmpc:
             self._flipping = False
         return self._flipping
 
-    def _drifting(self, ref: Reference) -> bool:
+    def _drifting(self, ref: Reference, now: float) -> bool:
         """Whether the lateral error is weighed: in FULL mode once a horizon of one steady drift
-        (one side, one sideslip) has been seen since the reset. The grip phase and the entry
-        ramp are left to the reference selector's path following, the path in TORQUE_ONLY to
-        the driver."""
+        (one side, one sideslip) has been seen since the reset; with ``cost.e_y_after_flip``
+        only while a horizon is not on one side (a flip, or leaving the drift) and that long
+        after the last such horizon. The grip phase and the entry ramp are left to the reference selector's path
+        following, the path in TORQUE_ONLY to the driver."""
         if self.mode != Mode.FULL:
             return False
+        betas = [e.beta for e in ref.horizon or (ref.target,)]
+        one_side = min(betas) > self.FLIP_SIDE or max(betas) < -self.FLIP_SIDE
         if not self._drifted:
-            betas = [e.beta for e in ref.horizon or (ref.target,)]
-            self._drifted = (min(betas) > self.FLIP_SIDE or max(betas) < -self.FLIP_SIDE) \
-                and max(betas) - min(betas) < self.FLIP_STEADY
-        return self._drifted
+            self._drifted = one_side and max(betas) - min(betas) < self.FLIP_STEADY
+        window = self.params.cost.e_y_after_flip
+        if not self._drifted or window == 0.0:
+            return self._drifted
+        if not one_side:
+            self._flip_seen = now
+        return now - self._flip_seen <= window
 
     SLOW_DROP = 0.2   # a drift's reference slows down when its speed falls this much [m/s]
 

@@ -73,16 +73,21 @@ class CostScales:
     e_y: float = 0.0            # lateral error to the path [m]; 0: no path states in the OCP
     e_y_time: float = 0.0       # ... asked to decay from the car's with this time constant [s];
                                 # 0: to vanish at once
+    e_y_after_flip: float = 0.0  # ... weighed only in a flip and this long after it [s]; 0:
+                                # throughout the drift
     terminal_factor: float = 5.0   # terminal state cost = factor x stage state cost [-]
     torque_range: float = 0.0   # T_R_max - T_R_min the torque scales are set for [Nm]; 0: none
 
     def __post_init__(self):
         for name, value in self.__dict__.items():
-            if name not in ('torque_range', 'omega_R_flip', 'V_slow', 'e_y', 'e_y_time'):
+            if name not in ('torque_range', 'omega_R_flip', 'V_slow', 'e_y', 'e_y_time',
+                            'e_y_after_flip'):
                 require(value > 0, f'nmpc.cost.{name}', f'must be positive, got {value}')
         require(self.torque_range >= 0, 'nmpc.cost.torque_range', 'must be >= 0 (0: off)')
         require(self.e_y >= 0, 'nmpc.cost.e_y', 'must be >= 0 (0: off)')
         require(self.e_y_time >= 0, 'nmpc.cost.e_y_time', 'must be >= 0 (0: at once)')
+        require(self.e_y_after_flip >= 0, 'nmpc.cost.e_y_after_flip',
+                'must be >= 0 (0: throughout the drift)')
         require(self.omega_R_flip == 0 or 0 < self.omega_R_flip < self.omega_R,
                 'nmpc.cost.omega_R_flip', 'must be 0 (off) or in (0, omega_R): a heavier weight')
         require(self.V_slow == 0 or 0 < self.V_slow < self.V,
