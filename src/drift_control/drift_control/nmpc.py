@@ -304,8 +304,8 @@ class Nmpc:
         """Whether the lateral error is weighed: in FULL mode once a horizon of one steady drift
         (one side, one sideslip) has been seen since the reset; with ``cost.e_y_after_flip``
         only while a horizon is not on one side (a flip, or leaving the drift) and that long
-        after the last such horizon. The grip phase and the entry ramp are left to the reference selector's path
-        following, the path in TORQUE_ONLY to the driver."""
+        after the last such horizon. The grip phase and the entry ramp are left to the reference
+        selector's path following, the path in TORQUE_ONLY to the driver."""
         if self.mode != Mode.FULL:
             return False
         betas = [e.beta for e in ref.horizon or (ref.target,)]
