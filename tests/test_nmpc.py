@@ -183,14 +183,14 @@ def test_front_slip_band_keeps_the_plans_front_tyre_near_its_peak(vp, params, eq
     assert math.radians(8.0) < band / 1.5 < math.radians(9.0)   # B 14, C 1.4: ~8.5 deg
     x = np.array(perturbed_start(eq30))[:6].tolist() + [eq30.T_R, eq30.T_R]
     ref = Reference(0.0, eq30, Direction.LEFT)
-    w0 = ctrl._cold_guess(np.array(x), ref)
+    w0 = ctrl._cold_guess(ctrl.ocp, np.array(x), ref)
     lock, step = ctrl.bounds.delta_max, ctrl.bounds.delta_dot_max * params.dt
     V, beta, r = x[0], x[1], x[2]
     course = front_axle_course(V, beta, r, vp.a)
     delta_0 = course + band + 5 * step   # steered 5 stages' rate beyond the band, into the turn
     lbw, ubw = ctrl.ocp.bounds_for(np.array(x))
-    ctrl._front_slip_band(lbw, ubw, ctrl._front_courses(w0), delta_0)
     nz, N = NS + NU, params.N
+    ctrl._front_slip_band(lbw, ubw, ctrl._front_courses(w0), delta_0, nz)
     lo, hi = lbw[X.DELTA + nz::nz], ubw[X.DELTA + nz::nz]
     assert len(lo) == N
     assert lo[0] == hi[0] == pytest.approx(delta_0 - step, rel=1e-5)
@@ -727,9 +727,10 @@ def test_the_lateral_error_is_weighed_with_the_path_states(vp, params, plant, eq
     """A car in its drift 1 m left of the circle: the NMPC that tracks the equilibrium alone
     (the paper's) drives the offset circle, 1 m right of the path half a lap later; with
     ``cost.e_y`` it drives back onto the path."""
-    on = Nmpc(vp, dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.1)))
-    off = Nmpc(vp, params)
-    assert (off.ocp.ns, on.ocp.ns) == (NS, NS + NPATH)
+    on = Nmpc(vp, dataclasses.replace(params, cost=dataclasses.replace(
+        params.cost, e_y=0.1, e_y_after_flip=0.0)))
+    off = Nmpc(vp, dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.0)))
+    assert (off.path_ocp, on.ocp.ns, on.path_ocp.ns) == (None, NS, NS + NPATH)
     K = eq30.r / eq30.V
     x = np.zeros(9)
     x[:6] = [eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta]
@@ -745,7 +746,8 @@ def test_the_lateral_error_weighs_once_the_car_drifts_in_full_mode(vp, params, e
     """The grip phase and the entry ramp are left to the reference selector: the lateral error
     weighs from the first horizon of one steady drift since the reset (latched), and never in
     TORQUE_ONLY, where the driver follows the path."""
-    on = dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.2))
+    on = dataclasses.replace(params, cost=dataclasses.replace(params.cost, e_y=0.2,
+                                                              e_y_after_flip=0.0))
     ctrl, n = Nmpc(vp, on), on.N + 1
     grip = dataclasses.replace(eq30, beta=0.0, r=0.3)
     ramp = tuple(dataclasses.replace(eq30, beta=eq30.beta * k / n) for k in range(n))
@@ -757,14 +759,16 @@ def test_the_lateral_error_weighs_once_the_car_drifts_in_full_mode(vp, params, e
     semi = Nmpc(vp, on, mode=Mode.TORQUE_ONLY)
     assert not semi._drifting(Reference(0.0, eq30, Direction.LEFT, (eq30,) * n), 0.0)
 
-    ocp = ctrl.ocp
-    rows = reference_rows(Reference(0.0, eq30), ocp.N)
-    H = [np.diag(ctrl._solver._hessian(ocp.pack_params(rows, 1.0, drift=f)).full())
-         for f in (False, True)]
-    weighed = [ocp.x(np.arange(ocp.nw), k)[S_E_Y] for k in range(1, ocp.N + 1)]
-    assert np.all(H[0][weighed] == 0.0) and np.all(H[1][weighed] > 0.0)
-    others = np.setdiff1d(np.arange(ocp.nw), weighed)
-    assert np.array_equal(H[1][others], H[0][others])
+    # the OCP solved while it weighs is the other one with the lateral error's cost added
+    base, path = ctrl.ocp, ctrl.path_ocp
+    rows = reference_rows(Reference(0.0, eq30), base.N)
+    H = [np.diag(solver._hessian(ocp.pack_params(rows, 1.0)).full())
+         for solver, ocp in ((ctrl._solver, base), (ctrl._path_solver, path))]
+    states, inputs = base.split(np.arange(base.nw))   # where each base entry sits in the other
+    at = path.join(np.hstack([states, np.full((base.N + 1, NPATH), -1)]), inputs).astype(int)
+    weighed = [path.x(np.arange(path.nw), k)[S_E_Y] for k in range(1, path.N + 1)]
+    assert np.all(H[1][weighed] > 0.0)
+    assert H[1][at >= 0] == pytest.approx(H[0][at[at >= 0]], rel=1e-12)
 
 
 def test_the_lateral_error_weighs_only_around_a_flip_with_e_y_after_flip(vp, params, eq30):
@@ -782,6 +786,39 @@ def test_the_lateral_error_weighs_only_around_a_flip_with_e_y_after_flip(vp, par
     assert not ctrl._drifting(Reference(0.0, flip[0], Direction.NONE, flip), 0.0)
     with pytest.raises(ParamError, match='nmpc.cost.e_y_after_flip'):
         dataclasses.replace(params.cost, e_y_after_flip=-1.0)
+
+
+def test_the_path_states_are_solved_only_while_the_lateral_error_weighs(vp, params, eq30):
+    """With ``cost.e_y_after_flip`` the NMPC solves the smaller OCP in the steady drift and the
+    one with the path states from the flip on, that long after it; the guess carries over
+    both ways, the path states rolled out along it (no gaps past the measured stage 0)."""
+    cost = dataclasses.replace(params.cost, e_y=0.2, e_y_after_flip=0.2)
+    ctrl, n = Nmpc(vp, dataclasses.replace(params, cost=cost)), params.N + 1
+    left, right = (eq30,) * n, (eq30.mirrored(),) * n
+    flip = tuple(eq30 if k < n // 2 else eq30.mirrored() for k in range(n))
+    solved = []
+    for name in ('_solver', '_path_solver'):
+        solver = getattr(ctrl, name)
+        solver.solve = (lambda run, name: lambda w0, p_, *a: (solved.append((name, w0, p_))
+                                                               or run(w0, p_, *a)))(
+            solver.solve, name)
+    for k in range(40):
+        now = k * TS
+        h = left if k < 10 else flip if k < 15 else right
+        eq = h[0]
+        x = [eq.V, eq.beta, eq.r, eq.omega_F, eq.omega_R, eq.delta]
+        res = ctrl.step(measure(x, now, drive_torque=eq.T_R),
+                        Reference(now, eq, Direction.LEFT if k < 15 else Direction.RIGHT, h,
+                                  curvature=1 / 15, e_y=0.3), now)
+        assert res.status == NmpcStatus.OK, (k, res.message)
+    names = [name for name, _, _ in solved]
+    last_flip, after = 14, int(round(0.2 / TS))
+    assert names == ['_solver'] * 10 + ['_path_solver'] * (last_flip - 9 + after) \
+        + ['_solver'] * (40 - last_flip - 1 - after)
+    _, w0, p_ = solved[10]   # the first path solve: the guess from the smaller OCP's plan
+    path = ctrl.path_ocp
+    gaps = np.asarray(path.gaps(w0, p_)).ravel().reshape(path.N, path.ns)
+    assert np.max(np.abs(gaps[1:, NS:])) < 1e-9
 
 
 def test_the_paths_curvature_reaches_each_stage_through_the_parameters(vp, params, eq30):
@@ -810,17 +847,18 @@ def test_the_lateral_error_asked_decays_from_the_cars_at_e_y_time(vp, params, eq
     a plan along that costs nothing for it, one straight onto the path does."""
     cost = dataclasses.replace(params.cost, e_y=0.2, e_y_time=1.0)
     ocp = Ocp(vp, dataclasses.replace(params, cost=cost))
+    base = Ocp(vp, dataclasses.replace(params, cost=cost), path=False)
     J = ca.Function('J', [ocp.w, ocp.p], [ocp.J])
+    J_base = ca.Function('J', [base.w, base.p], [base.J])
     rows = reference_rows(Reference(0.0, eq30), ocp.N)
     states = np.zeros((ocp.N + 1, ocp.ns))
     inputs = np.zeros((ocp.N, 2))
     t = np.arange(ocp.N + 1) * params.dt
+    without = float(J_base(base.join(states[:, :NS], inputs), base.pack_params(rows, 1.0)))
 
-    def e_y_cost(e_y):
+    def e_y_cost(e_y):   # the OCP's cost beyond the one without the path states
         states[:, S_E_Y] = e_y
-        w = ocp.join(states, inputs)
-        return float(J(w, ocp.pack_params(rows, 1.0, drift=True, e_y=1.5))
-                     - J(w, ocp.pack_params(rows, 1.0, drift=False, e_y=1.5)))
+        return float(J(ocp.join(states, inputs), ocp.pack_params(rows, 1.0, e_y=1.5))) - without
 
     assert e_y_cost(1.5 * np.exp(-t / cost.e_y_time)) == pytest.approx(0.0, abs=1e-9)
     assert e_y_cost(np.zeros_like(t)) > 1.0

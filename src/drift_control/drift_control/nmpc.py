@@ -20,7 +20,7 @@ from enum import IntEnum
 import numpy as np
 
 from drift_control.feasibility import equilibrium_problem
-from drift_control.ocp import (NREF, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp,
+from drift_control.ocp import (NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp,
                               for_vehicle)
 from drift_control.ocp_solvers import make_solver, period_function
 from drift_control.pacing import PeriodGate
@@ -99,10 +99,16 @@ class Nmpc:
             raise ValueError(f'mode must be FULL or TORQUE_ONLY, got {mode!r}')
         nmpc_params = for_vehicle(nmpc_params, vehicle_params)
         self.params, self.mode, self.mu = nmpc_params, Mode(mode), float(mu)
-        self.ocp = Ocp(vehicle_params, nmpc_params)
+        self.ocp = Ocp(vehicle_params, nmpc_params, path=False)
         self.bounds = self.ocp.bounds
         self._solver = make_solver(self.ocp, nmpc_params.solver)
         self._period = period_function(self.ocp, nmpc_params.solver)
+        #: with ``cost.e_y`` in FULL mode, the OCP with the path states, solved while the lateral
+        #: error weighs (``_drifting``): elsewhere the smaller OCP costs no more than without
+        self.path_ocp = Ocp(vehicle_params, nmpc_params, path=True) \
+            if nmpc_params.cost.e_y > 0 and mode == Mode.FULL else None
+        self._path_solver = make_solver(self.path_ocp, nmpc_params.solver) \
+            if self.path_ocp is not None else None
         self._hold = nmpc_params.torque_only_hold_stages if mode == Mode.TORQUE_ONLY else 0
         # the plan's front slip band [rad] and the front axle's distance from the CoG [m]
         self._front_slip = (nmpc_params.front_slip_max
@@ -119,6 +125,7 @@ class Nmpc:
     def reset(self) -> None:
         """Forget the previous solution, failures and commands (e.g. on re-engagement)."""
         self._w: np.ndarray | None = None   # last accepted solution
+        self._w_ocp = self.ocp               # ... of this OCP (its layout)
         self._age = 0                        # cycles since that solution
         self._failures = 0
         self._last: Command | None = None
@@ -175,8 +182,9 @@ class Nmpc:
         self._predict()
         if self._w is None:
             return
-        try:
-            self._solver.prepare(self._warm_guess(), self.mu)
+        solver = self._path_solver if self._w_ocp is self.path_ocp else self._solver
+        try:   # the OCP solved last (the next cycle's, unless the lateral error starts or stops)
+            solver.prepare(self._warm_guess(), self.mu)
         except Exception as err:   # never the node's end: the next step linearises itself
             log.warning('NMPC preparation failed (%s: %s); the next step does all its work',
                         type(err).__name__, err)
@@ -234,7 +242,10 @@ class Nmpc:
         return None
 
     def _solve(self, state: VehicleState, ref: Reference, now: float) -> NmpcResult:
-        ocp, N = self.ocp, self.params.N
+        N = self.params.N
+        ocp, solver = self.ocp, self._solver
+        if self.path_ocp is not None and self._drifting(ref, now):
+            ocp, solver = self.path_ocp, self._path_solver
         measured = state.drive_torque if state.has(Validity.DRIVE_TORQUE) else ref.target.T_R
         T_last = self._last.drive_torque if self._last is not None else measured
         # torque at the wheels: our own lag model of the requests while engaged (it knows the
@@ -251,15 +262,16 @@ class Nmpc:
         self._update_disturbance(x_init, ref)
         d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
         p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts,
-                            self._flip(ref), self._slow(ref), curvature,
-                            ocp.path and self._drifting(ref, now), ref.e_y)
+                            self._flip(ref), self._slow(ref), curvature, ref.e_y)
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
-            w0, iterations = self._cold_guess(x_init, ref), self.params.solver.cold_start_iter
+            w0, iterations = self._cold_guess(ocp, x_init, ref), self.params.solver.cold_start_iter
         else:
             w0, iterations = self._warm_guess(), self.params.solver.max_iter
+            if self._w_ocp is not ocp:
+                w0 = self._relayout(w0, ocp, x_init, curvature)
             if self._front_slip > 0.0:
-                self._front_slip_band(lbw, ubw, self._guess[3], x_init[X.DELTA])
+                self._front_slip_band(lbw, ubw, self._guess[3], x_init[X.DELTA], ocp.ns + NU)
             i = X.OMEGA_R
             for floor in self._guess[4]:   # the rear wheel's floors (none when off)
                 i += ocp.ns + NU
@@ -267,7 +279,7 @@ class Nmpc:
         w0[:ocp.ns] = x_init
         t0 = time.perf_counter()
         try:
-            out = self._solver.solve(w0, p, lbw, ubw, iterations)
+            out = solver.solve(w0, p, lbw, ubw, iterations)
             error = None if out.success else f'solver: {out.status}'
         except Exception as err:   # a solver exception is a failed cycle, never a crash
             out, error = None, f'solver raised {type(err).__name__}: {err}'
@@ -276,10 +288,10 @@ class Nmpc:
             error = 'solver returned non-finite values'
         if error is not None:
             return self._failed(state, ref, now, error, solve_time, out.iterations if out else 0)
-        self._w, self._age, self._failures, self._engaged = out.w, 0, 0, True
+        self._w, self._w_ocp, self._age, self._failures, self._engaged = out.w, ocp, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
         # where the next state should be: one control period of the model from this one
-        self._to_predict = X_pred[0].copy(), U_pred[0].copy(), self.mu, d
+        self._to_predict = X_pred[0, :NS].copy(), U_pred[0].copy(), self.mu, d
         command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
@@ -351,7 +363,7 @@ class Nmpc:
         share = (V / ref.target.V - low) / max(high - low, 1e-9)
         return min(1.0, max(0.0, share)) * self.bounds.T_R_min
 
-    def _front_slip_band(self, lbw, ubw, courses, delta_0: float) -> None:
+    def _front_slip_band(self, lbw, ubw, courses, delta_0: float, nz: int) -> None:
         """Steering bounds of stages 1 .. N that keep the front slip angle within the band.
 
         Past its peak slip the front tyre's force hardly grows with the steering, and that is
@@ -359,9 +371,10 @@ class Nmpc:
         car or scrub speed) lean on what a plant with another front does not share. The front
         axle's ``courses`` come from the warm start, the real-time iteration's linearisation
         point (``_front_courses``, worked out with it in ``prepare``); each stage's bound is cut
-        to what the steering rate can reach from the last, so the QP stays feasible.
+        to what the steering rate can reach from the last, so the QP stays feasible. ``nz``:
+        the OCP's stage size.
         """
-        nz, lock, band = self.ocp.ns + NU, self.bounds.delta_max, self._front_slip
+        lock, band = self.bounds.delta_max, self._front_slip
         step = self.bounds.delta_dot_max * self.params.dt * (1.0 - 1e-6)
         lo = hi = delta_0
         i = X.DELTA
@@ -377,7 +390,7 @@ class Nmpc:
         none without the front slip band."""
         if self._front_slip <= 0.0:
             return ()
-        nz, a = self.ocp.ns + NU, self._a
+        nz, a = self._w_ocp.ns + NU, self._a
         return tuple(front_axle_course(w0[i + X.V], w0[i + X.BETA], w0[i + X.R], a)
                      for i in range(nz, (self.params.N + 1) * nz, nz))
 
@@ -394,18 +407,28 @@ class Nmpc:
         """
         if self._rear_lock <= 0.0:
             return ()
-        nz, scale = self.ocp.ns + NU, (1.0 - self._rear_lock) / self._R_R
+        nz, scale = self._w_ocp.ns + NU, (1.0 - self._rear_lock) / self._R_R
         return tuple(scale * w0[k * nz + X.V] * math.cos(w0[k * nz + X.BETA])
                      if k >= self._rear_first else -math.inf for k in range(1, self.params.N + 1))
 
     # --- warm start and failures -----------------------------------------------------------
-    def _cold_guess(self, x_init, ref: Reference) -> np.ndarray:
+    def _cold_guess(self, ocp: Ocp, x_init, ref: Reference) -> np.ndarray:
         """Hold the initial state over the horizon, inputs at the reference torque."""
         N = self.params.N
         T = np.clip(ref.target.T_R, self.bounds.T_R_min, self.bounds.T_R_max)
         states = np.tile(x_init, (N + 1, 1))
         states[1:, S_T_LAST] = states[1:, S_T_ACT] = T
-        return self.ocp.join(states, np.tile([0.0, T], (N, 1)))
+        return ocp.join(states, np.tile([0.0, T], (N, 1)))
+
+    def _relayout(self, w, ocp: Ocp, x_init, curvature) -> np.ndarray:
+        """The guess ``w`` (in ``_w_ocp``'s layout) for ``ocp``: without the path states, or
+        with them rolled out from the car's along the guess's stages and the path's
+        ``curvature`` at each stage (as the gaps would have them)."""
+        states, inputs = self._w_ocp.split(w)
+        if not ocp.path:
+            return ocp.join(states[:, :NS], inputs)
+        path = ocp.path_rollout(states[:-1, :NS].T, inputs.T, x_init[NS:], curvature, self.mu)
+        return ocp.join(np.hstack([states[:, :NS], np.asarray(path).T]), inputs)
 
     def _warm_guess(self) -> np.ndarray:
         """The next solve's start: the last solution, ``_age`` + 1 periods old (more after
@@ -446,8 +469,9 @@ class Nmpc:
     def _shifted(self, w, shift: float) -> np.ndarray:
         """The solution ``shift`` stages later, the last stage repeated: states linear between
         stages, inputs held over their stage (as the plan applies them)."""
-        states, inputs = self.ocp.split(w)
-        return self.ocp.join(_shift_rows(states, shift), _shift_rows(inputs, shift, hold=True))
+        ocp = self._w_ocp
+        states, inputs = ocp.split(w)
+        return ocp.join(_shift_rows(states, shift), _shift_rows(inputs, shift, hold=True))
 
     def _update_disturbance(self, x_init, ref: Reference) -> None:
         """Offset-free tracking: move ``d`` by a share of the last one-step prediction error.
@@ -494,7 +518,7 @@ class Nmpc:
         if shift and self._w is not None and self._failures <= self.params.max_failures \
                 and self._periods_in_stages(self._age + 1) < N - self._hold:
             self._age += 1
-            X_pred, U_pred = self.ocp.split(
+            X_pred, U_pred = self._w_ocp.split(
                 self._shifted(self._w, self._periods_in_stages(self._age)))
             command = self._command_from_plan(X_pred, U_pred, now)
             return NmpcResult(command, False, NmpcStatus.SHIFTED, solve_time, iterations,

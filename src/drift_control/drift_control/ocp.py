@@ -2,8 +2,9 @@
 
 Multiple shooting on the vehicle states of the single-track model (``vehicle.rhs``, RK4 with
 substeps per stage). Path following is the reference selector's job (the paper's); with
-``cost.e_y`` the OCP state also carries the path states (heading error, lateral error and the
-path's curvature, whose change to each next stage is a parameter) and weighs the lateral error.
+``cost.e_y`` a second OCP's state also carries the path states (heading error, lateral error and
+the path's curvature, whose change to each next stage is a parameter) and weighs the lateral
+error: the NMPC solves that one while the lateral error weighs (``Nmpc``).
 The OCP state adds two torques: ``T_act``, the drive torque at the wheels, which follows the
 request ``T_R`` with the powertrain lag ``torque_lag`` (the car's engine lag and request delay;
 with 0 it is the request itself), and ``T_last``, the request of the previous stage
@@ -14,11 +15,11 @@ structure HPIPM needs. Decision vector, stage-interleaved for the structure-expl
     x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last[, psi, e_y, K]),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d, flip, slow[, dK_0 .. dK_N-1, drift, e_y_0]]`` (``d``: model error added per stage, for
+mu, d, flip, slow[, dK_0 .. dK_N-1, e_y_0]]`` (``d``: model error added per stage, for
 offset-free tracking; ``flip``: 1 while the reference flips sides, weighing the rear wheel speed
 as ``cost.omega_R_flip``; ``slow``: 1 while a drift's reference slows down, weighing the speed
 as ``cost.V_slow``; with the path states ``dK``, the path's change of curvature to each next
-stage, ``drift``, 1 while the lateral error weighs, and ``e_y_0``, the car's), so one
+stage, and ``e_y_0``, the car's lateral error), so one
 compiled solver serves every reference, surface and mode. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
@@ -259,8 +260,7 @@ class OcpParams(NamedTuple):
     flip: object        # 1 while the reference flips sides
     slow: object        # 1 while a drift's reference slows down
     dK: object          # the path's change of curvature per stage (N; empty without path states)
-    drift: object       # 1 once the car drifts: the lateral error is weighed (0 without them)
-    e_y_0: object       # the car's lateral error, from which the one asked decays [m]
+    e_y_0: object       # the car's lateral error, from which the one asked decays [m] (0 without)
 
 
 class Ocp:
@@ -281,17 +281,20 @@ class Ocp:
         measured state should be (the model-error estimate compares against it).
     """
 
-    def __init__(self, vehicle: VehicleParams, params: NmpcParams):
+    def __init__(self, vehicle: VehicleParams, params: NmpcParams, path: bool | None = None):
         params = for_vehicle(params, vehicle)
         self.vehicle, self.params = vehicle, params
         self.bounds = effective_bounds(vehicle, params)
-        #: the path states (heading error, lateral error, curvature) are in the OCP
-        self.path = params.cost.e_y > 0
+        #: the path states (heading error, lateral error, curvature) are in the OCP; ``path``
+        #: None: with ``cost.e_y``
+        self.path = params.cost.e_y > 0 if path is None else bool(path)
+        if self.path and params.cost.e_y == 0:
+            raise ValueError('path states need nmpc.cost.e_y > 0 (the lateral error scale)')
         #: OCP state size
         self.ns = ns = NS + NPATH if self.path else NS
         N, nz = params.N, ns + NU
         self.N, self.nw = N, N * nz + ns
-        self.np = (N + 1) * NREF + 1 + NXO + 2 + (N + 2 if self.path else 0)
+        self.np = (N + 1) * NREF + 1 + NXO + 2 + (N + 1 if self.path else 0)
         model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
         self.model = model
         xs, us, mu_s = ca.SX.sym('x', ns), ca.SX.sym('u', NU), ca.SX.sym('mu')
@@ -325,6 +328,10 @@ class Ocp:
                                 x_end[NXO + 1:], xs[S_K])
         #: one stage, ``F(x, u, mu) -> x_next`` on the OCP state (T_last+ = T_R)
         self.F = ca.Function('F', [xs, us, mu_s], [x_next], ['x', 'u', 'mu'], ['x_next'])
+        #: with the path states, ``path_rollout(X, U, path_0, K, mu) -> (NPATH, N+1)``: the path
+        #: states along a plan's vehicle states and inputs (X (NS, N), U (NU, N)) from
+        #: ``path_0``, the curvature of stage k from ``K`` (N+1), as the gaps have them
+        self.path_rollout = self._path_rollout() if self.path else None
         # one control period, RK4 steps no longer than the stage's: where the next state should be
         period_steps = max(1, math.ceil(params.substeps * params.Ts / params.dt - 1e-9))
         x_period = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, period_steps)
@@ -333,7 +340,7 @@ class Ocp:
                                     ['x', 'u', 'mu'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
-        refs, _, _, flip, slow, _, drift, e_y_0 = self.unpack_params(self.p)
+        refs, _, _, flip, slow, _, e_y_0 = self.unpack_params(self.p)
         c = params.cost
         flip_extra, slow_extra = c.flip_extra(), c.slow_extra()
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
@@ -356,7 +363,7 @@ class Ocp:
                 if slow_extra:
                     res.append(slow * slow_extra * (xk[X.V] - refs[k][X.V]))
                 if self.path:
-                    res.append(drift * (xk[S_E_Y] - decay[k] * e_y_0) / c.e_y)
+                    res.append((xk[S_E_Y] - decay[k] * e_y_0) / c.e_y)
         term = math.sqrt(c.terminal_factor)
         x_N = self.x(self.w, N)
         res.append(term * (x_N[:NXO] - refs[N][:NXO]) / state_scale)
@@ -365,9 +372,19 @@ class Ocp:
         if slow_extra:
             res.append(term * slow * slow_extra * (x_N[X.V] - refs[N][X.V]))
         if self.path:
-            res.append(term * drift * (x_N[S_E_Y] - decay[N] * e_y_0) / c.e_y)
+            res.append(term * (x_N[S_E_Y] - decay[N] * e_y_0) / c.e_y)
         self.residual = ca.vertcat(*res)
         self.J = ca.sumsqr(self.residual)
+
+    def _path_rollout(self) -> ca.Function:
+        N = self.params.N
+        X_v, U_s = ca.SX.sym('X', NS, N), ca.SX.sym('U', NU, N)
+        path_0, K, mu = ca.SX.sym('path_0', NPATH), ca.SX.sym('K', N + 1), ca.SX.sym('mu')
+        rows = [path_0]
+        for k in range(N):
+            x_next = self.F(ca.vertcat(X_v[:, k], rows[-1]), U_s[:, k], mu)
+            rows.append(ca.vertcat(x_next[S_PSI], x_next[S_E_Y], K[k + 1]))
+        return ca.Function('path_rollout', [X_v, U_s, path_0, K, mu], [ca.horzcat(*rows)])
 
     def gaps(self, w, p):
         """Shooting gaps ``F(x_k, u_k, mu) + o_k - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u -
@@ -387,7 +404,7 @@ class Ocp:
         """(ns, N) what each stage adds to the model's next state: ``d``, the estimated model
         error of one stage (offset-free tracking, ``Nmpc``), and with the path states the path's
         change of curvature to the next stage."""
-        _, _, d, _, _, dK, _, _ = self.unpack_params(p)
+        _, _, d, _, _, dK, _ = self.unpack_params(p)
         if not self.path:
             return ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
         return ca.vertcat(ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO + NPATH - 1)), 1, self.N),
@@ -428,19 +445,17 @@ class Ocp:
         return np.concatenate([body.ravel(), np.asarray(states)[-1]])
 
     def unpack_params(self, p) -> 'OcpParams':
-        """``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow, dK, drift, e_y_0); without the path
-        states ``dK`` is empty and ``drift``, ``e_y_0`` 0."""
+        """``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow, dK, e_y_0); without the path states
+        ``dK`` is empty and ``e_y_0`` 0."""
         n = (self.N + 1) * NREF
         refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
         i = n + 3 + NXO
-        dK, drift, e_y_0 = ((p[i:i + self.N], p[i + self.N], p[i + self.N + 1]) if self.path
-                            else (p[0:0], 0.0, 0.0))
+        dK, e_y_0 = (p[i:i + self.N], p[i + self.N]) if self.path else (p[0:0], 0.0)
         return OcpParams(refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO], p[n + 2 + NXO], dK,
-                         drift, e_y_0)
+                         e_y_0)
 
     def pack_params(self, refs, mu: float, d=None, flip: bool = False,
-                    slow: bool = False, curvature=None, drift: bool = False,
-                    e_y: float = 0.0) -> np.ndarray:
+                    slow: bool = False, curvature=None, e_y: float = 0.0) -> np.ndarray:
         """Numeric parameter vector.
 
         Parameters
@@ -457,8 +472,6 @@ class Ocp:
             A drift's reference slows down: the speed weighs as ``cost.V_slow``.
         curvature : array (N+1,), optional
             The path's curvature at each stage [1/m] (with the path states; default straight).
-        drift : bool
-            The car drifts (with the path states): the lateral error is weighed.
         e_y : float
             The car's lateral error [m], from which stage k's decays (``cost.e_y_time``).
         """
@@ -469,7 +482,7 @@ class Ocp:
         parts = [refs.ravel(), [mu], d, [1.0 if flip else 0.0], [1.0 if slow else 0.0]]
         if self.path:
             K = np.zeros(self.N + 1) if curvature is None else np.asarray(curvature, dtype=float)
-            parts += [np.diff(K), [1.0 if drift else 0.0, e_y]]
+            parts += [np.diff(K), [e_y]]
         return np.concatenate(parts)
 
     def bounds_for(self, x_init, hold_stages: int = 0,
