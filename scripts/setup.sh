@@ -82,10 +82,13 @@ h=$(hash_files config/nmpc.yaml config/defaults.yaml config/vehicle/*.yaml src/d
 if ! stamp_ok nmpc_codegen "$h" || [[ ! -d .codegen ]]; then
     log "compiling the NMPC solver of every vehicle in config/vehicle (.codegen/)"
     t0=$SECONDS
-    "$V/bin/python" -c 'from drift_control.assembly import load_setup
-from drift_control.params import vehicle_names
-for name in vehicle_names():
-    load_setup(vehicle=name, with_map=False).build_nmpc()' || { log "NMPC solver build failed"; exit 1; }
+    # one process per vehicle, as many at once as there are cores (each compiles its OCPs)
+    "$V/bin/python" -c 'from drift_control.params import vehicle_names
+print("\n".join(vehicle_names()))' >build/vehicles.txt \
+        && xargs -P "$(nproc)" -I{} "$V/bin/python" -c 'import sys
+from drift_control.assembly import load_setup
+load_setup(vehicle=sys.argv[1], with_map=False).build_nmpc()' {} <build/vehicles.txt \
+        || { log "NMPC solver build failed"; exit 1; }
     log "NMPC solvers compiled in $((SECONDS - t0)) s"
     stamp_set nmpc_codegen "$h"
 fi
