@@ -613,7 +613,9 @@ def test_compiled_iteration_matches_interpreted(vp, params, eq30, qp):
     if not shutil.which('gcc'):
         pytest.skip('no gcc')
     sp = dataclasses.replace(params.solver, qp_solver=qp)
-    ctrl = Nmpc(vp, dataclasses.replace(params, solver=sp))
+    # the paper's OCP alone: a variant with the path states would be compiled for nothing
+    ctrl = Nmpc(vp, dataclasses.replace(params, solver=sp,
+                                        cost=dataclasses.replace(params.cost, e_y=0.0)))
     solver, ocp = ctrl._solver, ctrl.ocp
     x0 = np.r_[perturbed_start(eq30)[:6], eq30.T_R, eq30.T_R]
     w0 = ocp.join(np.tile(x0, (ocp.N + 1, 1)), np.tile([0.0, eq30.T_R], (ocp.N, 1)))
@@ -647,7 +649,7 @@ def test_a_flip_weighs_the_rear_wheel_speed_until_the_drift_is_steady(vp, params
     one does with that weight. Off, the Hessian stays the constant it was."""
     assert Nmpc(vp, params)._solver.H is not None, 'off: a constant Hessian'
     assert not Nmpc(vp, params)._flip(Reference(0.0, eq30, Direction.LEFT))
-    cost = dataclasses.replace(params.cost, omega_R_flip=5.0)
+    cost = dataclasses.replace(params.cost, omega_R_flip=5.0, e_y=0.0)   # the paper's OCP only
     ctrl = Nmpc(vp, dataclasses.replace(params, cost=cost))
     ocp, solver = ctrl.ocp, ctrl._solver
     rows = reference_rows(Reference(0.0, eq30), ocp.N)
@@ -683,7 +685,7 @@ def test_a_steady_drift_slowing_down_weighs_the_speed_as_v_slow(vp, params, eq30
     n = params.N + 1
     slower = tuple(dataclasses.replace(eq30, V=eq30.V - 0.05 * k) for k in range(n))
     assert not Nmpc(vp, params)._slow(Reference(0.0, slower[0], Direction.LEFT, slower)), 'off'
-    cost = dataclasses.replace(params.cost, V_slow=0.5)
+    cost = dataclasses.replace(params.cost, V_slow=0.5, e_y=0.0)   # the paper's OCP only
     ctrl = Nmpc(vp, dataclasses.replace(params, cost=cost))
     rows = reference_rows(Reference(0.0, eq30), ctrl.ocp.N)
     assert_flag_weighs(ctrl, rows, 'slow', X.V, cost.V / cost.V_slow)
