@@ -67,7 +67,7 @@ class DoMpcController:
         u = ca.vertcat(model.set_variable('_u', 'delta_dot'), model.set_variable('_u', 'T_R'))
         ref = model.set_variable('_tvp', 'ref', shape=(7, 1))
         mu_p = model.set_variable('_p', 'mu')
-        x_next = ocp.F(ca.vertcat(x, 0.0), u, mu_p)[:NXO + 1]   # T_last: do-mpc's r-term
+        x_next = ocp.F(ca.vertcat(x, 0.0), u, mu_p, params.torque_lag)[:NXO + 1]   # T_last: r-term
         for i, n in enumerate(names):
             model.set_rhs(n, x_next[i])
         model.setup()

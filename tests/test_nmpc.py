@@ -269,9 +269,9 @@ def test_one_stage_is_two_control_periods_of_the_same_model(vp, eq30):
     ocp = Ocp(vp, NmpcParams(Ts=0.02, stage_dt=0.04, substeps=4, torque_lag=0.0))
     x = np.array([*perturbed_start(eq30)[:NXO], eq30.T_R, eq30.T_R])
     u = np.array([0.3, eq30.T_R + 500.0])
-    stage = np.asarray(ocp.F(x, u, 1.0)).ravel()[:NXO]
-    half = np.asarray(ocp.F_period(x, u, 1.0)).ravel()
-    twice = np.asarray(ocp.F_period(np.concatenate([half, x[NXO:]]), u, 1.0)).ravel()
+    stage = np.asarray(ocp.F(x, u, 1.0, 0.0)).ravel()[:NXO]
+    half = np.asarray(ocp.F_period(x, u, 1.0, 0.0)).ravel()
+    twice = np.asarray(ocp.F_period(np.concatenate([half, x[NXO:]]), u, 1.0, 0.0)).ravel()
     assert np.allclose(stage, twice, rtol=1e-9, atol=1e-9)
     assert not np.allclose(half, stage, atol=1e-3), 'a period is shorter than a stage'
 
@@ -315,7 +315,7 @@ def test_model_error_is_learnt_per_control_period(vp, params, eq30, stage_dt):
         res = ctrl.step(state, Reference(now, eq30, Direction.LEFT), now)
         assert res.status == NmpcStatus.OK
         u = [res.command.delta_rate, res.command.drive_torque]
-        x = np.asarray(ctrl.ocp.F_period([*x, T_act, T_act], u, 1.0)).ravel() + offset
+        x = np.asarray(ctrl.ocp.F_period([*x, T_act, T_act], u, 1.0, p.torque_lag)).ravel() + offset
         T_act += (1.0 - math.exp(-p.Ts / p.torque_lag)) * (res.command.drive_torque - T_act)
     assert ctrl.model_error[2] == pytest.approx(0.002, rel=0.1)
     seen = []
@@ -834,7 +834,7 @@ def test_the_paths_curvature_reaches_each_stage_through_the_parameters(vp, param
           -eq30.beta, 0.0, K[0]]
     states, inputs = [np.array(x0)], np.tile([0.0, eq30.T_R], (N, 1))
     for k in range(N):
-        nxt = np.asarray(ocp.F(states[-1], inputs[k], 1.0)).ravel()
+        nxt = np.asarray(ocp.F(states[-1], inputs[k], 1.0, ocp.params.torque_lag)).ravel()
         nxt[S_K] += K[k + 1] - K[k]
         states.append(nxt)
     gaps = np.asarray(ocp.gaps(ocp.join(np.array(states), inputs), p)).ravel()

@@ -20,6 +20,7 @@ from enum import IntEnum
 import numpy as np
 
 from drift_control.feasibility import equilibrium_problem
+from drift_control.lag_learning import LagLearner
 from drift_control.ocp import (NREF, NS, NXO, S_T_ACT, S_T_LAST, NmpcParams, Ocp,
                               for_vehicle)
 from drift_control.ocp_solvers import make_solver, period_function
@@ -120,7 +121,17 @@ class Nmpc:
         self._rear_first = math.ceil(nmpc_params.torque_lag / nmpc_params.dt - 1e-9) + 1
         self.supervisor = Supervisor(supervisor) if supervisor is not None else None
         self.inputs = InputChecker(vehicle_params, nmpc_params.inputs)
+        #: the powertrain lag learnt from the requests and the measured torque (with
+        #: ``torque_lag_learning.enabled`` and a lag in the OCP); kept over ``reset`` (same car)
+        learning = nmpc_params.torque_lag_learning
+        self.lag_learner = LagLearner(learning, nmpc_params.Ts, nmpc_params.torque_lag) \
+            if learning.enabled and nmpc_params.torque_lag > 0 else None
         self.reset()
+
+    @property
+    def lag(self) -> float:
+        """The powertrain lag the plans use [s]: learnt, or ``torque_lag``."""
+        return self.lag_learner.lag if self.lag_learner is not None else self.params.torque_lag
 
     def reset(self) -> None:
         """Forget the previous solution, failures and commands (e.g. on re-engagement)."""
@@ -134,7 +145,7 @@ class Nmpc:
         self._T_act = 0.0                    # modelled torque at the wheels [Nm]
         self._d = np.zeros(NXO)              # model error per control period (offset-free)
         self._x1_pred: np.ndarray | None = None   # the last solve's prediction of this state
-        self._to_predict: tuple | None = None      # ... before it is worked out: (x, u, mu, d)
+        self._to_predict: tuple | None = None   # ... before it is worked out: (x, u, mu, lag, d)
         self._guess: tuple | None = None           # (solution, age, the warm start from it,
                                                    # its front axle courses, rear wheel floors)
         self._flipping = False                     # the reference flips sides (latched)
@@ -158,6 +169,11 @@ class Nmpc:
         ``max_failures`` cycles first. The next good state is solved from a cold start.
         """
         state_problem = self._state_problem(state, now)
+        if self.lag_learner is not None:   # a fit not prepared, then the torque the last
+            self.lag_learner.update()       # request brought, if measured
+            measured = state.drive_torque if state_problem is None and self._last is not None \
+                and state.has(Validity.DRIVE_TORQUE) else None
+            self.lag_learner.add(self._last.drive_torque if self._last else math.nan, measured)
         ref_problem = self._reference_problem(ref, now) if state_problem is None else None
         tripped = self.supervisor.check(state, ref, self._last, now) \
             if self.supervisor is not None and self._engaged else None
@@ -180,18 +196,20 @@ class Nmpc:
         real-time iteration's preparation phase). Optional: ``step`` does whatever was not
         prepared, and its command is the same bit for bit either way."""
         self._predict()
+        if self.lag_learner is not None:
+            self.lag_learner.update()
         if self._w is None:
             return
         solver = self._path_solver if self._w_ocp is self.path_ocp else self._solver
         try:   # the OCP solved last (the next cycle's, unless the lateral error starts or stops)
-            solver.prepare(self._warm_guess(), self.mu)
+            solver.prepare(self._warm_guess(), self.mu, self.lag)
         except Exception as err:   # never the node's end: the next step linearises itself
             log.warning('NMPC preparation failed (%s: %s); the next step does all its work',
                         type(err).__name__, err)
 
     def _propagate_torque(self, request: float, state) -> float:
         """Wheel torque after one period of ``request`` through the powertrain lag (exact)."""
-        lag = self.params.torque_lag
+        lag = self.lag
         if lag <= 0.0:
             return request
         start = self._T_act if self._engaged else (
@@ -262,7 +280,7 @@ class Nmpc:
         self._update_disturbance(x_init, ref)
         d = self._d * _side_sign(ref)   # learnt per control period; a stage may span several
         p = ocp.pack_params(reference_rows(ref, N), self.mu, d * self.params.dt / self.params.Ts,
-                            self._flip(ref), self._slow(ref), curvature, ref.e_y)
+                            self._flip(ref), self._slow(ref), curvature, ref.e_y, self.lag)
         lbw, ubw = ocp.bounds_for(x_init, self._hold, self._braking_bound(state.V, ref))
         if self._w is None:
             w0, iterations = self._cold_guess(ocp, x_init, ref), self.params.solver.cold_start_iter
@@ -291,7 +309,7 @@ class Nmpc:
         self._w, self._w_ocp, self._age, self._failures, self._engaged = out.w, ocp, 0, 0, True
         X_pred, U_pred = ocp.split(out.w)
         # where the next state should be: one control period of the model from this one
-        self._to_predict = X_pred[0, :NS].copy(), U_pred[0].copy(), self.mu, d
+        self._to_predict = X_pred[0, :NS].copy(), U_pred[0].copy(), self.mu, self.lag, d
         command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
@@ -427,7 +445,8 @@ class Nmpc:
         states, inputs = self._w_ocp.split(w)
         if not ocp.path:
             return ocp.join(states[:, :NS], inputs)
-        path = ocp.path_rollout(states[:-1, :NS].T, inputs.T, x_init[NS:], curvature, self.mu)
+        path = ocp.path_rollout(states[:-1, :NS].T, inputs.T, x_init[NS:], curvature, self.mu,
+                                self.lag)
         return ocp.join(np.hstack([states[:, :NS], np.asarray(path).T]), inputs)
 
     def _warm_guess(self) -> np.ndarray:
@@ -444,8 +463,8 @@ class Nmpc:
     def _predict(self) -> None:
         """The last solve's prediction of the next measured state, if not yet worked out."""
         if self._to_predict is not None:
-            x, u, mu, d = self._to_predict
-            self._x1_pred, self._to_predict = self._period(x, u, mu) + d, None
+            x, u, mu, lag, d = self._to_predict
+            self._x1_pred, self._to_predict = self._period(x, u, mu, lag) + d, None
 
     def next_state(self, state: VehicleState) -> VehicleState | None:
         """The last solve's prediction of ``state`` one control period on (the model's states,

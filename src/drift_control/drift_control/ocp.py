@@ -15,12 +15,12 @@ structure HPIPM needs. Decision vector, stage-interleaved for the structure-expl
     x = (V, beta, r, omega_F, omega_R, delta, T_act, T_last[, psi, e_y, K]),  u = (delta_dot, T_R)
 
 ``x_0`` is fixed through its bounds (``lbw = ubw``). Runtime parameters ``p = [ref_0 .. ref_N,
-mu, d, flip, slow[, dK_0 .. dK_N-1, e_y_0]]`` (``d``: model error added per stage, for
+mu, d, flip, slow[, dK_0 .. dK_N-1, e_y_0], lag]`` (``d``: model error added per stage, for
 offset-free tracking; ``flip``: 1 while the reference flips sides, weighing the rear wheel speed
 as ``cost.omega_R_flip``; ``slow``: 1 while a drift's reference slows down, weighing the speed
 as ``cost.V_slow``; with the path states ``dK``, the path's change of curvature to each next
-stage, and ``e_y_0``, the car's lateral error), so one
-compiled solver serves every reference, surface and mode. Every cost term is a
+stage, and ``e_y_0``, the car's lateral error; ``lag``, the powertrain's lag), so one
+compiled solver serves every reference, surface, mode and powertrain. Every cost term is a
 squared residual ``(error / scale)^2``: the Gauss-Newton RTI solver uses the residual vector.
 """
 from __future__ import annotations
@@ -35,6 +35,7 @@ import numpy as np
 
 from drift_control.params import (ParamError, VehicleParams, config_dir, from_dict, load_yaml,
                                    require)
+from drift_control.lag_learning import LagLearningParams
 from drift_control.plausibility import InputLimits
 from drift_control.vehicle import N_VEHICLE, NTHETA, NU, U, X, VehicleModel, rk4_step
 
@@ -188,6 +189,7 @@ class NmpcParams:
                                     # this many times the model's front peak slip (0: off)
     rear_lock_slip: float = 0.0     # the plan brakes the rear wheel to at most this
                                     # longitudinal slip, kappa >= -this (0: off)
+    torque_lag_learning: LagLearningParams = field(default_factory=LagLearningParams)
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
@@ -261,6 +263,7 @@ class OcpParams(NamedTuple):
     slow: object        # 1 while a drift's reference slows down
     dK: object          # the path's change of curvature per stage (N; empty without path states)
     e_y_0: object       # the car's lateral error, from which the one asked decays [m] (0 without)
+    lag: object         # the powertrain's lag [s] (with ``torque_lag``; else unused)
 
 
 class Ocp:
@@ -294,21 +297,24 @@ class Ocp:
         self.ns = ns = NS + NPATH if self.path else NS
         N, nz = params.N, ns + NU
         self.N, self.nw = N, N * nz + ns
-        self.np = (N + 1) * NREF + 1 + NXO + 2 + (N + 1 if self.path else 0)
+        self.np = (N + 1) * NREF + 1 + NXO + 2 + (N + 1 if self.path else 0) + 1
         model = VehicleModel(vehicle, params.load_passes, params.front_wheel)
         self.model = model
         xs, us, mu_s = ca.SX.sym('x', ns), ca.SX.sym('u', NU), ca.SX.sym('mu')
         # the OCP integrates the first N_VEHICLE model states (path states do not feed back: they
-        # are held at zero) and, with a powertrain lag, the torque at the wheels
-        lag = params.torque_lag
-        x7, u_req, th = ca.SX.sym('x7', NXO + 1), ca.SX.sym('u', NU), ca.SX.sym('theta', NTHETA)
+        # are held at zero) and, with a powertrain lag, the torque at the wheels. The lag is a
+        # runtime parameter (``lag_s``, the model's theta plus one): a lag learnt on the car
+        # (``Nmpc``, ``torque_lag_learning``) needs no new solver
+        lag, lag_s = params.torque_lag, ca.SX.sym('lag')
+        x7, u_req = ca.SX.sym('x7', NXO + 1), ca.SX.sym('u', NU)
+        th = ca.SX.sym('theta', NTHETA + 1)
         x9 = ca.vertcat(x7[:NXO], ca.SX.zeros(len(X) - NXO))
         T_act = x7[NXO]
         u_wheel = ca.vertcat(u_req[U.DELTA_DOT], T_act if lag > 0 else u_req[U.T_R])
-        T_dot = (u_req[U.T_R] - T_act) / lag if lag > 0 else 0.0
+        T_dot = (u_req[U.T_R] - T_act) / th[NTHETA] if lag > 0 else 0.0
         f7 = ca.Function('f7', [x7, u_req, th],
-                         [ca.vertcat(model.f(x9, u_wheel, th)[:NXO], T_dot)])
-        theta = ca.vertcat(0.0, mu_s)   # curvature unused: no path states in the OCP
+                         [ca.vertcat(model.f(x9, u_wheel, th[:NTHETA])[:NXO], T_dot)])
+        theta = ca.vertcat(0.0, mu_s, lag_s)   # curvature unused: no path states in the OCP
         x_end = rk4_step(f7, xs[:NXO + 1], us, theta, params.dt, params.substeps)
         T_act_end = x_end[NXO] if lag > 0 else us[U.T_R]
         x_next = ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])
@@ -317,30 +323,32 @@ class Ocp:
             x10 = ca.SX.sym('x10', NXO + 3)
             x9p = ca.vertcat(x10[:NXO], x10[NXO + 1:], 0.0)
             dx = model.f(x9p, ca.vertcat(u_req[U.DELTA_DOT], x10[NXO] if lag > 0
-                                         else u_req[U.T_R]), th)
-            T_dot10 = (u_req[U.T_R] - x10[NXO]) / lag if lag > 0 else 0.0
+                                         else u_req[U.T_R]), th[:NTHETA])
+            T_dot10 = (u_req[U.T_R] - x10[NXO]) / th[NTHETA] if lag > 0 else 0.0
             f10 = ca.Function('f10', [x10, u_req, th],
                               [ca.vertcat(dx[:NXO], T_dot10, dx[X.PSI], dx[X.E_Y])])
             start = ca.vertcat(xs[:NXO + 1], xs[S_PSI], xs[S_E_Y])
-            x_end = rk4_step(f10, start, us, ca.vertcat(xs[S_K], mu_s), params.dt,
+            x_end = rk4_step(f10, start, us, ca.vertcat(xs[S_K], mu_s, lag_s), params.dt,
                              params.substeps)
             x_next = ca.vertcat(x_end[:NXO], x_end[NXO] if lag > 0 else us[U.T_R], us[U.T_R],
                                 x_end[NXO + 1:], xs[S_K])
-        #: one stage, ``F(x, u, mu) -> x_next`` on the OCP state (T_last+ = T_R)
-        self.F = ca.Function('F', [xs, us, mu_s], [x_next], ['x', 'u', 'mu'], ['x_next'])
-        #: with the path states, ``path_rollout(X, U, path_0, K, mu) -> (NPATH, N+1)``: the path
-        #: states along a plan's vehicle states and inputs (X (NS, N), U (NU, N)) from
+        #: one stage, ``F(x, u, mu, lag) -> x_next`` on the OCP state (T_last+ = T_R), ``lag``
+        #: the powertrain's [s] (unused without ``torque_lag``)
+        self.F = ca.Function('F', [xs, us, mu_s, lag_s], [x_next], ['x', 'u', 'mu', 'lag'],
+                             ['x_next'])
+        #: with the path states, ``path_rollout(X, U, path_0, K, mu, lag) -> (NPATH, N+1)``: the
+        #: path states along a plan's vehicle states and inputs (X (NS, N), U (NU, N)) from
         #: ``path_0``, the curvature of stage k from ``K`` (N+1), as the gaps have them
         self.path_rollout = self._path_rollout() if self.path else None
         # one control period, RK4 steps no longer than the stage's: where the next state should be
         period_steps = max(1, math.ceil(params.substeps * params.Ts / params.dt - 1e-9))
         x_period = rk4_step(f7, xs[:NXO + 1], us, theta, params.Ts, period_steps)
-        #: one control period, ``F_period(x, u, mu) -> x`` (vehicle states V .. delta)
-        self.F_period = ca.Function('F_period', [xs, us, mu_s], [x_period[:NXO]],
-                                    ['x', 'u', 'mu'], ['x_next'])
+        #: one control period, ``F_period(x, u, mu, lag) -> x`` (vehicle states V .. delta)
+        self.F_period = ca.Function('F_period', [xs, us, mu_s, lag_s], [x_period[:NXO]],
+                                    ['x', 'u', 'mu', 'lag'], ['x_next'])
 
         self.w, self.p = ca.SX.sym('w', self.nw), ca.SX.sym('p', self.np)
-        refs, _, _, flip, slow, _, e_y_0 = self.unpack_params(self.p)
+        refs, _, _, flip, slow, _, e_y_0, _ = self.unpack_params(self.p)
         c = params.cost
         flip_extra, slow_extra = c.flip_extra(), c.slow_extra()
         state_scale = np.array([c.V, c.beta, c.r, c.omega_F, c.omega_R, c.delta])
@@ -380,11 +388,12 @@ class Ocp:
         N = self.params.N
         X_v, U_s = ca.SX.sym('X', NS, N), ca.SX.sym('U', NU, N)
         path_0, K, mu = ca.SX.sym('path_0', NPATH), ca.SX.sym('K', N + 1), ca.SX.sym('mu')
+        lag = ca.SX.sym('lag')
         rows = [path_0]
         for k in range(N):
-            x_next = self.F(ca.vertcat(X_v[:, k], rows[-1]), U_s[:, k], mu)
+            x_next = self.F(ca.vertcat(X_v[:, k], rows[-1]), U_s[:, k], mu, lag)
             rows.append(ca.vertcat(x_next[S_PSI], x_next[S_E_Y], K[k + 1]))
-        return ca.Function('path_rollout', [X_v, U_s, path_0, K, mu], [ca.horzcat(*rows)])
+        return ca.Function('path_rollout', [X_v, U_s, path_0, K, mu, lag], [ca.horzcat(*rows)])
 
     def gaps(self, w, p):
         """Shooting gaps ``F(x_k, u_k, mu) + o_k - x_{k+1}``, k = 0..N-1 (HPIPM's ``A x + B u -
@@ -394,9 +403,10 @@ class Ocp:
         code).
         """
         ns, nz = self.ns, self.ns + NU
-        mu = self.unpack_params(p).mu
+        par = self.unpack_params(p)
         body = ca.reshape(w[:self.N * nz], nz, self.N)
-        x_next = self.F.map(self.N)(body[:ns, :], body[ns:, :], mu) + self.offsets(p)
+        x_next = self.F.map(self.N)(body[:ns, :], body[ns:, :], par.mu, par.lag) \
+            + self.offsets(p)
         x_after = ca.horzcat(body[:ns, 1:], w[self.N * nz:])
         return ca.vec(x_next - x_after)
 
@@ -404,7 +414,7 @@ class Ocp:
         """(ns, N) what each stage adds to the model's next state: ``d``, the estimated model
         error of one stage (offset-free tracking, ``Nmpc``), and with the path states the path's
         change of curvature to the next stage."""
-        _, _, d, _, _, dK, _ = self.unpack_params(p)
+        _, _, d, _, _, dK, _, _ = self.unpack_params(p)
         if not self.path:
             return ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO)), 1, self.N)
         return ca.vertcat(ca.repmat(ca.vertcat(d, ca.DM.zeros(NS - NXO + NPATH - 1)), 1, self.N),
@@ -445,17 +455,17 @@ class Ocp:
         return np.concatenate([body.ravel(), np.asarray(states)[-1]])
 
     def unpack_params(self, p) -> 'OcpParams':
-        """``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow, dK, e_y_0); without the path states
-        ``dK`` is empty and ``e_y_0`` 0."""
+        """``p`` -> ([ref_0 .. ref_N], mu, d, flip, slow, dK, e_y_0, lag); without the path
+        states ``dK`` is empty and ``e_y_0`` 0."""
         n = (self.N + 1) * NREF
         refs = [p[k * NREF:(k + 1) * NREF] for k in range(self.N + 1)]
         i = n + 3 + NXO
         dK, e_y_0 = (p[i:i + self.N], p[i + self.N]) if self.path else (p[0:0], 0.0)
         return OcpParams(refs, p[n], p[n + 1:n + 1 + NXO], p[n + 1 + NXO], p[n + 2 + NXO], dK,
-                         e_y_0)
+                         e_y_0, p[self.np - 1])
 
-    def pack_params(self, refs, mu: float, d=None, flip: bool = False,
-                    slow: bool = False, curvature=None, e_y: float = 0.0) -> np.ndarray:
+    def pack_params(self, refs, mu: float, d=None, flip: bool = False, slow: bool = False,
+                    curvature=None, e_y: float = 0.0, lag: float | None = None) -> np.ndarray:
         """Numeric parameter vector.
 
         Parameters
@@ -474,6 +484,8 @@ class Ocp:
             The path's curvature at each stage [1/m] (with the path states; default straight).
         e_y : float
             The car's lateral error [m], from which stage k's decays (``cost.e_y_time``).
+        lag : float, optional
+            The powertrain's lag [s]; default ``torque_lag``.
         """
         refs = np.asarray(refs, dtype=float)
         if refs.shape != (self.N + 1, NREF):
@@ -483,6 +495,7 @@ class Ocp:
         if self.path:
             K = np.zeros(self.N + 1) if curvature is None else np.asarray(curvature, dtype=float)
             parts += [np.diff(K), [e_y]]
+        parts.append([self.params.torque_lag if lag is None else lag])
         return np.concatenate(parts)
 
     def bounds_for(self, x_init, hold_stages: int = 0,

@@ -83,10 +83,10 @@ class RtiSolver:
         self.qp_data = qp_data
         self.qp = self._conic(A.sparsity())
         self.iteration = None
-        # what ``prepare`` linearised: the guess's stages 1 .. N-1 and mu
+        # what ``prepare`` linearised: the guess's stages 1 .. N-1, mu and the powertrain lag
         self._linearised = slice(ocp.ns + NU, ocp.N * (ocp.ns + NU))
-        self._mu_index = (ocp.N + 1) * NREF
-        self._prepared: tuple[np.ndarray, float] | None = None
+        self._mu_index, self._lag_index = (ocp.N + 1) * NREF, ocp.np - 1
+        self._prepared: tuple[np.ndarray, float, float] | None = None
         if sp.codegen and sp.qp_solver in _CODEGEN_QP:
             self.iteration = self._compiled_iteration(grad_fn)
         if sp.codegen and self.iteration is None:
@@ -121,25 +121,26 @@ class RtiSolver:
         ocp, N, ns = self.ocp, self.ocp.N, self.ocp.ns
         nz = ns + NU
         S = ocp.state_scale()
-        x, u, mu = ca.SX.sym('x', ns), ca.SX.sym('u', NU), ca.SX.sym('mu')
+        x, u, mu, lag = ca.SX.sym('x', ns), ca.SX.sym('u', NU), ca.SX.sym('mu'), ca.SX.sym('lag')
         xu = ca.vertcat(x, u)
-        x_next = ocp.F(x, u, mu)
+        x_next = ocp.F(x, u, mu, lag)
         # seeds D e_j as the chain rule through w = D ws gives them; rows scaled like the gaps
         jac = ca.jtimes(x_next, xu, ca.DM(np.diag(self.D[:nz]))) / S
         jac = ca.project(jac, ca.jacobian(x_next, xu).sparsity())
-        stage = ca.Function('nmpc_stage', [x, u, mu], [x_next, jac])
+        stage = ca.Function('nmpc_stage', [x, u, mu, lag], [x_next, jac])
 
         ws, p = ca.MX.sym('ws', ocp.nw), ca.MX.sym('p', ocp.np)
         lbs, ubs = ca.MX.sym('lbs', ocp.nw), ca.MX.sym('ubs', ocp.nw)
-        mu_s = ca.MX.sym('mu')
+        mu_s, lag_s = ca.MX.sym('mu'), ca.MX.sym('lag')
         w = self.D * ws
         body = ca.reshape(w[:N * nz], nz, N)
-        rest = stage.map(N - 1)(body[:ns, 1:], body[ns:, 1:], mu_s)
-        prepare = ca.Function('nmpc_rti_prepare', [ws, mu_s], list(rest))
+        rest = stage.map(N - 1)(body[:ns, 1:], body[ns:, 1:], mu_s, lag_s)
+        prepare = ca.Function('nmpc_rti_prepare', [ws, mu_s, lag_s], list(rest))
         X_rest = ca.MX.sym('X_rest', rest[0].sparsity())
         jac_rest = ca.MX.sym('jac_rest', rest[1].sparsity())
 
-        X_0, jac_0 = stage(body[:ns, 0], body[ns:, 0], ocp.unpack_params(p).mu)
+        par = ocp.unpack_params(p)
+        X_0, jac_0 = stage(body[:ns, 0], body[ns:, 0], par.mu, par.lag)
         X_next, jacs = ca.horzcat(X_0, X_rest), ca.horzcat(jac_0, jac_rest)
         # the gaps exactly as Ocp.gaps computes them
         X_next = X_next + ocp.offsets(p)
@@ -166,18 +167,19 @@ class RtiSolver:
             return None
         return CompiledFunction(so_prepare, prepare), CompiledFunction(so_feedback, feedback)
 
-    def prepare(self, w, mu: float) -> None:
+    def prepare(self, w, mu: float, lag: float) -> None:
         """Linearise the model's stages 1 .. N-1 at the guess ``w`` now, before the state
-        arrives: a ``solve`` from the same guess (whatever its stage 0) then only does the
-        feedback part. The result is the same bit for bit; without codegen this does nothing."""
+        arrives: a ``solve`` from the same guess (whatever its stage 0), ``mu`` and powertrain
+        ``lag`` then only does the feedback part. The result is the same bit for bit; without
+        codegen this does nothing."""
         if self.iteration is None:
             return
         prep = self.iteration[0]
         self._prepared = None   # until this preparation is complete
         prep.inputs[0][:] = np.asarray(w, dtype=float) / self.D
-        prep.inputs[1][0] = mu
+        prep.inputs[1][0], prep.inputs[2][0] = mu, lag
         prep()
-        self._prepared = prep.inputs[0][self._linearised].copy(), float(mu)
+        self._prepared = prep.inputs[0][self._linearised].copy(), float(mu), float(lag)
 
     def _iterate(self, ws, p, lbs, ubs):
         """One iteration: (dws, J, QP cost, QP status); dws is None when the QP failed."""
@@ -187,10 +189,11 @@ class RtiSolver:
             gap = np.asarray(gap).ravel()
         else:
             prep, fb = self.iteration
-            mu = float(p[self._mu_index])
+            mu, lag = float(p[self._mu_index]), float(p[self._lag_index])
             done = self._prepared
-            if done is None or done[1] != mu or not np.array_equal(done[0], ws[self._linearised]):
-                prep.inputs[0][:], prep.inputs[1][0] = ws, mu
+            if done is None or done[1:] != (mu, lag) \
+                    or not np.array_equal(done[0], ws[self._linearised]):
+                prep.inputs[0][:], prep.inputs[1][0], prep.inputs[2][0] = ws, mu, lag
                 prep()
             self._prepared = None   # the step moves ws: an iteration after this one prepares anew
             fb.inputs[0][:], fb.inputs[1][:], fb.inputs[2][:], fb.inputs[3][:] = ws, p, lbs, ubs
@@ -308,7 +311,7 @@ class NlpSolver:
                     'fatrop': {'print_level': 0, 'max_iter': max_iter, 'tol': sp.tol}}
         raise ValueError(f'unknown NLP method {sp.method!r}')
 
-    def prepare(self, w, mu: float) -> None:
+    def prepare(self, w, mu: float, lag: float) -> None:
         """Nothing to do ahead of the measurement: an NLP solve starts from its guess."""
 
     def solve(self, w0, p, lbw, ubw, iterations: int) -> SolveOutput:
@@ -327,17 +330,17 @@ class NlpSolver:
 
 
 def period_function(ocp: Ocp, sp: SolverParams):
-    """``ocp.F_period`` as ``(x, u, mu) -> numpy array``, compiled with ``sp.codegen``.
+    """``ocp.F_period`` as ``(x, u, mu, lag) -> numpy array``, compiled with ``sp.codegen``.
 
     The one-period prediction the model-error estimate compares the next state against.
     """
     so = compile_cached(ocp.F_period, 'nmpc_period', sp) if sp.codegen else None
     if so is None:
-        return lambda x, u, mu: np.asarray(ocp.F_period(x, u, mu)).ravel()
+        return lambda x, u, mu, lag: np.asarray(ocp.F_period(x, u, mu, lag)).ravel()
     f = CompiledFunction(so, ocp.F_period)
 
-    def period(x, u, mu):
-        f.inputs[0][:], f.inputs[1][:], f.inputs[2][0] = x, u, mu
+    def period(x, u, mu, lag):
+        f.inputs[0][:], f.inputs[1][:], f.inputs[2][0], f.inputs[3][0] = x, u, mu, lag
         f()
         return f.outputs[0].copy()
     return period

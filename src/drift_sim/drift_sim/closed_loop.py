@@ -246,7 +246,7 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     command, ref = None, None
     log = {k: [] for k in ('t', 'x', 'y', 'V', 'beta', 'r', 'delta', 'T', 'omega_F', 'omega_R',
                            'e_y', 's', 'mu', 'beta_ref',
-                           'beta_des', 'delta_cmd', 'delta_plan', 'T_cmd')}
+                           'beta_des', 'delta_cmd', 'delta_plan', 'T_cmd', 'lag')}
     if sensors is not None:   # what the controller saw, next to the truth
         log.update(beta_seen=[], r_seen=[], V_seen=[])
     solve_times = []
@@ -279,7 +279,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                            ('beta_ref', ref.target.beta if ref is not None else math.nan),
                            ('delta_cmd', command.delta if command else math.nan),
                            ('delta_plan', getattr(ctrl, 'plan_delta', math.nan)),
-                           ('T_cmd', command.drive_torque if command else math.nan)):
+                           ('T_cmd', command.drive_torque if command else math.nan),
+                           ('lag', getattr(getattr(ctrl, 'nmpc', None), 'lag', math.nan))):
             log[key].append(value)
         if sensors is not None:
             for key, value in (('beta_seen', state.beta), ('r_seen', state.r),
@@ -312,6 +313,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     out['transition_time_s'] = metrics.transition_time(
         data['t'], data['beta'], math.radians(sc.metrics.drift_beta_deg + 10.0))
     out['exit_time_s'] = metrics.exit_time(data['t'], data['beta'], data['beta_ref'])
+    # the powertrain lag the NMPC planned with at the end (learnt, or its configured one)
+    lags = data['lag'][np.isfinite(data['lag'])]
+    out['torque_lag_s'] = float(lags[-1]) if len(lags) else None
     if sc.control_mode == 'torque_only':   # the NMPC's steering is a proposal (paper Sec. VI-B)
         out.update(metrics.steer_proposal_diff(data['t'], data['delta_cmd'], data['delta'],
                                                windows))
