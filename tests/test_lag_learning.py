@@ -17,10 +17,10 @@ def params():
     return load_nmpc_params()
 
 
-def powertrain(requests, delay: float, tau: float, signal_delay: float, noise: float, seed=0):
-    """The torque measured at the end of each period of ``requests`` (one per period ``TS``):
-    a transport delay and a first-order lag, integrated in 1 ms steps, measured ``signal_delay``
-    late with white noise."""
+def powertrain(requests, delay: float, tau: float, noise: float, every: float = 0.01, seed=0):
+    """The wheel torque at instants ``every`` apart of ``requests`` (one per period ``TS``,
+    sent at ``k TS``): a transport delay and a first-order lag, integrated in 1 ms steps, with
+    white noise. Returns (instants, torques)."""
     h, sub = 0.001, round(TS / 0.001)
     n = len(requests) * sub
     u = np.repeat(requests, sub)
@@ -29,9 +29,9 @@ def powertrain(requests, delay: float, tau: float, signal_delay: float, noise: f
     for i, v in enumerate(lagged):
         T += (1.0 - math.exp(-h / tau)) * (v - T)
         out[i] = T
-    seen = np.concatenate([np.full(round(signal_delay / h), requests[0]), out])[:n]
+    pick = np.arange(round(every / h) - 1, n, round(every / h))
     rng = np.random.default_rng(seed)
-    return seen[sub - 1::sub] + rng.normal(0.0, noise, len(requests))
+    return (pick + 1) * h, out[pick] + rng.normal(0.0, noise, len(pick))
 
 
 def steps(seconds: float, seed=0):
@@ -41,44 +41,77 @@ def steps(seconds: float, seed=0):
     return np.repeat(levels, round(0.3 / TS))[:round(seconds / TS)]
 
 
+def drive(learner, requests, samples, latency=0.02, update=lambda k: True, skip=()):
+    """Each period: the samples that have arrived (``latency`` after their instant), a fit if
+    one is due (when ``update(k)``), then the period's request; the lag after each period."""
+    t_m, m = samples
+    seen, lags = 0, []
+    for k, request in enumerate(requests):
+        now = k * TS
+        while seen < len(t_m) and t_m[seen] + latency <= now + 1e-9:
+            learner.measure(t_m[seen], m[seen])
+            seen += 1
+        if update(k):
+            learner.update()
+        if k not in skip:
+            learner.request(now, request)
+        lags.append(learner.lag)
+    return lags
+
+
 @pytest.mark.parametrize('delay, tau', [(0.03, 0.08), (0.07, 0.12), (0.0, 0.06)])
-def test_the_learnt_lag_is_the_powertrains_delay_plus_lag(delay, tau):
-    params = LagLearningParams(enabled=True)
+@pytest.mark.parametrize('every', [0.01, 0.02])
+def test_the_learnt_lag_is_the_powertrains_delay_plus_lag(delay, tau, every):
+    """Torque samples at 100 Hz (a torque unit's) or one a period (the state's), each with
+    its instant."""
     u = steps(6.0)
-    m = powertrain(u, delay, tau, params.signal_delay, noise=10.0)
-    learner = LagLearner(params, TS, initial=0.11)
-    for request, measured in zip(u, m):
-        learner.add(request, measured)
-        learner.update()
+    learner = LagLearner(LagLearningParams(enabled=True), TS, initial=0.11)
+    drive(learner, u, powertrain(u, delay, tau, noise=10.0, every=every))
     assert learner.fits > 10
     assert learner.lag == pytest.approx(delay + tau, abs=0.012)
+
+
+def test_a_fit_sees_the_same_data_whenever_it_runs():
+    """A fit is taken with a request; fitted then or at the next period's start (``update``
+    from ``Nmpc.prepare`` or from ``Nmpc.step``): the same lags."""
+    u = steps(6.0)
+    samples = powertrain(u, 0.05, 0.09, noise=10.0)
+    params = LagLearningParams(enabled=True)
+    every = drive(LagLearner(params, TS, 0.11), u, samples)
+    late = LagLearner(params, TS, 0.11)
+    lags = drive(late, u, samples, update=lambda k: k % 2 == 0)
+    assert late.fits > 10
+    assert lags[::2] == every[::2]
 
 
 def test_without_excitation_or_measurement_the_lag_stays():
     params = LagLearningParams(enabled=True)
     learner = LagLearner(params, TS, initial=0.11)
     u = np.full(300, 800.0)
-    for request, measured in zip(u, powertrain(u, 0.07, 0.12, 0.02, noise=10.0)):
-        learner.add(request, measured)
-        learner.update()
+    drive(learner, u, powertrain(u, 0.07, 0.12, noise=10.0))
     assert (learner.lag, learner.fits) == (0.11, 0)
-    u = steps(6.0)
-    for request in u:   # no torque measured: nothing to fit
-        learner.add(request, None)
-        learner.update()
+    drive(learner, steps(6.0), (np.zeros(0), np.zeros(0)))   # nothing measured
     assert (learner.lag, learner.fits) == (0.11, 0)
 
 
-def test_a_gap_in_the_measurement_starts_the_window_again():
+def test_missed_periods_or_an_interruption_start_the_window_again():
     params = LagLearningParams(enabled=True)
-    learner = LagLearner(params, TS, initial=0.11)
     u = steps(6.0)
-    m = powertrain(u, 0.07, 0.12, 0.02, noise=10.0)
+    samples = powertrain(u, 0.07, 0.12, noise=10.0)
     window = round(params.window / TS)
-    for k, (request, measured) in enumerate(zip(u, m)):
-        learner.add(request, None if k % (window - 1) == window - 2 else measured)
-        learner.update()
+    learner = LagLearner(params, TS, initial=0.11)
+    missed = {k + i for k in range(window - 4, len(u), window - 3) for i in range(3)}
+    drive(learner, u, samples, skip=missed)
     assert learner.fits == 0, 'no window is ever full'
+    learner = LagLearner(params, TS, initial=0.11)
+
+    def interrupted(k):   # a fallback now and then (the learner told before the update)
+        if k % (window - 1) == window - 2:
+            learner.interrupt()
+        return True
+
+    drive(learner, u, samples, update=interrupted)
+    assert learner.fits == 0
     learner.reset()
     assert learner.lag == 0.11
 
@@ -120,3 +153,34 @@ def test_the_nmpc_plans_with_the_learnt_lag(vp, params, eq30):
         plans[lag] = res.predicted_states
     assert np.array_equal(plans[None], plans[0.11])
     assert not np.allclose(plans[0.11], plans[0.19], atol=1e-3)
+
+
+def test_the_nmpc_learns_from_its_own_requests_and_the_torque_samples(vp, params, eq30):
+    """Every solved step hands the learner its request and the state's drive torque (at the
+    state's instant less ``signal_delay``); torque samples, once fed, replace the state's; a
+    step below ``speed_min`` or in fallback starts the window again."""
+    from drift_control.nmpc import Nmpc, NmpcStatus
+    from drift_control.signals import Reference, VehicleState
+    learning = dataclasses.replace(params.torque_lag_learning, enabled=True)
+    ctrl = Nmpc(vp, dataclasses.replace(params, torque_lag_learning=learning))
+    x = [eq30.V, eq30.beta, eq30.r, eq30.omega_F, eq30.omega_R, eq30.delta]
+
+    def step(k, V=x[0]):
+        now = k * TS
+        state = VehicleState(stamp=now, V=V, beta=x[1], r=x[2],
+                             wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5],
+                             drive_torque=eq30.T_R)
+        return ctrl.step(state, Reference(now, eq30), now)
+
+    for k in range(3):
+        assert step(k).status == NmpcStatus.OK
+    assert ctrl.lag_learner.window == (3, 3)
+    assert ctrl.lag_learner._measured[-1] == (2 * TS - learning.signal_delay, eq30.T_R)
+    ctrl.observe_torque(2 * TS, 1234.0)
+    step(3)
+    assert ctrl.lag_learner.window == (4, 4)   # the sample, not the state's torque
+    assert ctrl.lag_learner._measured[-1] == (2 * TS, 1234.0)
+    step(4, V=learning.speed_min - 0.1)
+    assert ctrl.lag_learner.window == (0, 0)
+    assert step(5, V=math.nan).status != NmpcStatus.OK
+    assert ctrl.lag_learner.window == (0, 0)

@@ -536,6 +536,7 @@ class Estimator:
         self.wheels = [_RateFilter(p.wheel_std, p.wheel_jerk) for _ in FIELDS['wheels']]
         self.steering = _RateFilter(p.steering_std, p.steering_jerk)
         self.torque = _RateFilter(p.torque_std, p.torque_jerk)
+        self.torque_samples: list[tuple[float, float]] = []   # the last step's taken (stamp, Nm)
         self.yaw_rate = _RateFilter(p.gyro_std, p.yaw_jerk)
         self._steering_torque = 0.0
         noise = p.ins_noise_std or p.ins_test_std
@@ -564,6 +565,7 @@ class Estimator:
         """
         t0 = time.perf_counter()
         self._now = now
+        self.torque_samples = []
         for s in sorted(samples, key=lambda s: s.unit != 'imu'):   # the IMU first: it drives
             self._arrived[s.unit] = now
             if s.unit == 'imu':
@@ -579,7 +581,8 @@ class Estimator:
                 self._scalar(self.steering, 'steering.delta', s.stamp, s.values[0])
                 self._steering_torque = s.values[1]
             elif s.unit == 'torque':
-                self._scalar(self.torque, 'torque.drive_torque', s.stamp, s.values[0])
+                if self._scalar(self.torque, 'torque.drive_torque', s.stamp, s.values[0]):
+                    self.torque_samples.append((s.stamp, s.values[0]))
             elif s.unit == 'ins':
                 self._pending.append(s)
                 if self.x is None and self._imu:
@@ -940,11 +943,12 @@ class Estimator:
                 mon.excluded = None
             self._scalar(filt, key, s.stamp, z)
 
-    def _scalar(self, filt: _RateFilter, name: str, stamp: float, z: float) -> None:
-        """Test one sample against its channel's filter, then update (or re-initialise)."""
+    def _scalar(self, filt: _RateFilter, name: str, stamp: float, z: float) -> bool:
+        """Test one sample against its channel's filter, then update (or re-initialise);
+        True when the sample was taken."""
         if filt.x is None:
             filt.update(stamp, z)
-            return
+            return True
         nu, S = filt.innovation(stamp, z)
         verdict = self.monitors[name].judge(nu * nu / S, nu / math.sqrt(S), stamp)
         if verdict == 'jump':
@@ -954,6 +958,7 @@ class Estimator:
             filt.reset(stamp, z)
         elif verdict not in ('reject', 'jump'):
             filt.update(stamp, z)
+        return verdict not in ('reject', 'jump')
 
     def _frozen_check(self, name: str, z: float, stamp: float) -> bool:
         """True while ``name`` is frozen (left out); names the fault once, clears on change."""
@@ -1095,10 +1100,12 @@ class LatestSamples:
 
     def reset(self) -> None:
         self.latest: dict[str, SensorSample] = {}
+        self.torque_samples: list[tuple[float, float]] = []   # the last step's (stamp, Nm)
 
     def step(self, samples, now: float) -> VehicleState | None:
         for s in samples:
             self.latest[s.unit] = s
+        self.torque_samples = [(s.stamp, s.values[0]) for s in samples if s.unit == 'torque']
         if not {'ins', 'imu', 'wheels', 'steering', 'torque'} <= self.latest.keys():
             return None
         V, beta, r, X, Y, yaw = self.latest['ins'].values

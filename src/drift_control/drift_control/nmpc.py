@@ -126,6 +126,7 @@ class Nmpc:
         learning = nmpc_params.torque_lag_learning
         self.lag_learner = LagLearner(learning, nmpc_params.Ts, nmpc_params.torque_lag) \
             if learning.enabled and nmpc_params.torque_lag > 0 else None
+        self._torque_samples = False   # observe_torque has been fed
         self.reset()
 
     @property
@@ -152,6 +153,8 @@ class Nmpc:
         self._flip_seen = -math.inf                # a horizon not on one side: when last [s]
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
+        if getattr(self, 'lag_learner', None) is not None:
+            self.lag_learner.interrupt()
         self.inputs.reset()
 
     @property
@@ -169,11 +172,12 @@ class Nmpc:
         ``max_failures`` cycles first. The next good state is solved from a cold start.
         """
         state_problem = self._state_problem(state, now)
-        if self.lag_learner is not None:   # a fit not prepared, then the torque the last
-            self.lag_learner.update()       # request brought, if measured
-            measured = state.drive_torque if state_problem is None and self._last is not None \
-                and state.has(Validity.DRIVE_TORQUE) else None
-            self.lag_learner.add(self._last.drive_torque if self._last else math.nan, measured)
+        learner = self.lag_learner
+        if learner is not None:   # a fit not prepared, then the state's torque if measured
+            learner.update()
+            if state_problem is None and not self._torque_samples \
+                    and state.has(Validity.DRIVE_TORQUE):
+                learner.measure(state.stamp - learner.params.signal_delay, state.drive_torque)
         ref_problem = self._reference_problem(ref, now) if state_problem is None else None
         tripped = self.supervisor.check(state, ref, self._last, now) \
             if self.supervisor is not None and self._engaged else None
@@ -188,7 +192,21 @@ class Nmpc:
             result = self._solve(state, ref.at(now, self.params.dt), now)
         self._last = result.command
         self._T_act = self._propagate_torque(result.command.drive_torque, state)
+        if learner is not None:   # the NMPC's own requests at speed, nothing else
+            if result.status in (NmpcStatus.OK, NmpcStatus.SHIFTED) and state_problem is None \
+                    and state.V >= learner.params.speed_min:
+                learner.request(now, result.command.drive_torque)
+            else:
+                learner.interrupt()
         return replace(result, stage_dt=self.params.dt)
+
+    def observe_torque(self, stamp: float, torque: float) -> None:
+        """A drive torque sample at the wheels [Nm] of instant ``stamp`` [s] (the torque
+        unit's, as the estimator took it): from the first on, the lag is learnt from these
+        instead of the state's drive torque. Nothing without lag learning."""
+        if self.lag_learner is not None:
+            self._torque_samples = True
+            self.lag_learner.measure(stamp, torque)
 
     def prepare(self) -> None:
         """Do the next cycle's work that needs no measurement now, once the command is out:

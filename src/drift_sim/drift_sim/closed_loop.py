@@ -267,6 +267,9 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
                 ref = selector.select(ctrl.nmpc.next_state(state) or state) or ref
             ctrl.prepare()
         state = sim.step(command)
+        if sensors is not None and hasattr(ctrl, 'nmpc'):   # the lag learner's own samples
+            for stamp, torque in sim.estimator.torque_samples:
+                ctrl.nmpc.observe_torque(stamp, torque)
         tr = sim.sample()
         st = tr.state
         for key, value in (('t', tr.t), ('x', st.x), ('y', st.y), ('V', st.V),

@@ -129,6 +129,8 @@ class NmpcNode(Node):
         repeated = t == self._stepper.last_now
         state = self._stepper.step(samples, t)
         self._log(self._stepper, self._epoch)
+        for stamp, torque in self._stepper.estimator.torque_samples:   # the lag's learner's
+            self._nmpc.observe_torque(stamp, torque)
         if state is None:
             return
         if repeated:   # offered again (a lock-step start): answer again, for a late joiner
