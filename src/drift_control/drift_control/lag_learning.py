@@ -152,25 +152,24 @@ class LagLearner:
         h = np.diff(t)
         mean_u = np.diff(at, axis=1) / h                 # the delayed request, step by step
         decay = np.exp(-h[:, None] / self._taus[None, :])
+        rise = 1.0 - decay
         shape = (len(self._delays), len(self._taus))
         # m ~ c0 x + c1 f: x the initial torque's decay, f the response from zero
-        f, x = np.zeros(shape), np.ones((1, shape[1]))
-        ff, fx, xx, fm, xm = (np.zeros(shape) for _ in range(5))
+        f, F = np.zeros(shape), np.empty((len(h),) + shape)
         for j in range(len(h)):   # the exact ZOH step of T' = (u - T) / tau, every pair at once
-            a = decay[j][None, :]
-            f = a * f + (1.0 - a) * mean_u[:, j, None]
-            x = a * x
-            mj = m[j + 1]
-            ff += f * f
-            fx += f * x
-            xx += x * x
-            fm += f * mj
-            xm += x * mj
+            f *= decay[j]
+            f += rise[j] * mean_u[:, j, None]
+            F[j] = f
+        x = np.exp(-(t[1:, None] - t[0]) / self._taus[None, :])
+        m = m[1:]
+        ff, fx, fm = (np.einsum('jdt,jdt->dt', F, F), np.einsum('jdt,jt->dt', F, x),
+                      np.einsum('jdt,j->dt', F, m))
+        xx, xm = (x * x).sum(axis=0), x.T @ m
         det = ff * xx - fx * fx
         with np.errstate(divide='ignore', invalid='ignore'):
             c1 = (xx * fm - fx * xm) / det
             c0 = (ff * xm - fx * fm) / det
-        sse = np.where(det > 0, float(np.dot(m[1:], m[1:])) - c0 * xm - c1 * fm, np.inf)
+        sse = np.where(det > 0, float(m @ m) - c0 * xm - c1 * fm, np.inf)
         i, j = np.unravel_index(int(np.argmin(sse)), shape)
         if i == shape[0] - 1 or j == shape[1] - 1:
             return None
@@ -178,7 +177,7 @@ class LagLearner:
         sums = np.add.outer(np.arange(shape[0]), np.arange(1, shape[1] + 1))
         profile = np.full(sums.max() + 1, np.inf)
         np.minimum.at(profile, sums.ravel(), sse.ravel())
-        bound = sse[i, j] * (1.0 + _CHI2_1_95 / (len(h) - 4))
+        bound = sse[i, j] * (1.0 + _CHI2_1_95 / (len(m) - 4))
         inside = np.flatnonzero(profile <= bound) * self.params.lag_step
         lo, hi = (min(max(v, self.params.lag_min), self.params.lag_max)
                   for v in (inside[0], inside[-1]))
