@@ -294,7 +294,9 @@ def test_command_is_one_control_period_along_a_longer_stage(nmpc, eq30, params):
     assert res.stage_dt == params.dt
     c = res.command
     assert c.delta_rate == pytest.approx(res.predicted_inputs[0, 0])
-    assert c.delta == pytest.approx(x[5] + c.delta_rate * params.Ts, abs=1e-9)
+    # from the plan's start: the measured steering moved on by its age (state_age)
+    start = res.predicted_states[0, 5]
+    assert c.delta == pytest.approx(start + c.delta_rate * params.Ts, abs=1e-9)
 
 
 @pytest.mark.parametrize('stage_dt', [0.02, 0.04])
@@ -990,3 +992,42 @@ def test_the_state_predicted_one_period_on_carries_the_pose(nmpc, eq30):
     course = state.yaw + state.beta
     assert math.hypot(nxt.x, nxt.y) == pytest.approx(TS * state.V, rel=0.05)
     assert math.atan2(nxt.y, nxt.x) == pytest.approx(course, abs=0.05)
+
+
+def test_a_measured_states_age_is_predicted_on(vp, params, eq30):
+    """With ``state_age`` each measured state starts the plan moved on by its age under the
+    requests applied (one Euler step of the model); a stamped state (an estimator's) as is."""
+    from drift_control.signals import Reference, VehicleState
+    from drift_control.vehicle import NU, U
+    age = np.array([0.01, 0.02, 0.01, 0.01, 0.01, 0.01])
+    x = np.array([eq30.V, eq30.beta + 0.05, eq30.r, eq30.omega_F, eq30.omega_R,
+                  eq30.delta + 0.02])   # off the equilibrium: the states move
+    starts, first = {}, {}
+    for stamped in (False, True):
+        ctrl = Nmpc(vp, dataclasses.replace(params, state_age=tuple(age)), stamped=stamped)
+        seen = []
+        run = ctrl._solver.solve
+        ctrl._solver.solve = lambda w0, p, *a, run=run, seen=seen: \
+            seen.append(np.array(w0[:NXO + 1])) or run(w0, p, *a)
+        for k in range(2):
+            state = VehicleState(stamp=k * 0.02, V=x[0], beta=x[1], r=x[2],
+                                 wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5],
+                                 drive_torque=eq30.T_R)
+            result = ctrl.step(state, Reference(k * 0.02, eq30), k * 0.02)
+            first.setdefault(stamped, result.command)
+        assert np.allclose(seen[0][:NXO], x), 'no request applied yet: as measured'
+        starts[stamped] = seen[1]
+    assert np.allclose(starts[True][:NXO], x)
+    u = np.zeros(NU)
+    u[U.DELTA_DOT], u[U.T_R] = first[False].delta_rate, first[False].drive_torque
+    x_dot = np.asarray(ctrl.ocp.f_state(np.r_[x, starts[False][NXO]], u, ctrl.mu,
+                                        ctrl.lag)).ravel()[:NXO]
+    assert np.allclose(starts[False][:NXO], x + age * x_dot)
+    assert not np.allclose(starts[False][:NXO], x)
+
+
+def test_the_state_age_names_its_key():
+    with pytest.raises(ParamError, match='state_age'):
+        NmpcParams(state_age=(0.01,) * 5)
+    with pytest.raises(ParamError, match='state_age'):
+        NmpcParams(state_age=(0.0, 0.2, 0.0, 0.0, 0.0, 0.0))   # beyond max_input_age

@@ -275,7 +275,9 @@ def test_the_estimator_stage_follows_the_samples_source_and_gets_the_sensors(tmp
     assert yaml.safe_load(p_sim['sensor_faults']) == ['ins:dropout:1:2']
     assert yaml.safe_load(p_est['estimator']) == 'none' and 'sensors' not in p_est
     assert yaml.safe_load(p_est['set']) == ['surface.mu=0.9']
-    assert 'state_source' not in _params(node_command(NodeSpec('nmpc', NMPC_MODULE), opts))
+    p_nmpc = _params(node_command(NodeSpec('nmpc', NMPC_MODULE), opts))
+    assert 'state_source' not in p_nmpc
+    assert yaml.safe_load(p_nmpc['stamped_states']) is True, "the estimator node's states"
     p_nmpc = _params(node_command(NodeSpec('nmpc', NMPC_MODULE),
                                   dataclasses.replace(opts, estimator_in='nmpc')))
     assert yaml.safe_load(p_nmpc['state_source']) == 'sensors'
@@ -283,6 +285,8 @@ def test_the_estimator_stage_follows_the_samples_source_and_gets_the_sensors(tmp
     plain = _params(node_command(NodeSpec('sim', 'drift_sim.nodes.sim_node'),
                                  RunOptions(params_file=tmp_path, config_dir=tmp_path)))
     assert 'sensors' not in plain, 'the default graph: the simulator as it was'
+    assert 'stamped_states' not in _params(node_command(
+        NodeSpec('nmpc', NMPC_MODULE), RunOptions(params_file=tmp_path, config_dir=tmp_path)))
 
 
 def test_an_empty_scenario_is_not_passed(tmp_path):

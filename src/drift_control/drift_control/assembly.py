@@ -85,11 +85,14 @@ class Setup:
         """The scenario's control mode (FULL without a scenario)."""
         return MODES[self.scenario.control_mode] if self.scenario else Mode.FULL
 
-    def build_nmpc(self, mode: Mode | None = None, supervised: bool = True):
-        """The NMPC for this vehicle, tuning and the named surface's friction."""
+    def build_nmpc(self, mode: Mode | None = None, supervised: bool = True,
+                   stamped: bool = False):
+        """The NMPC for this vehicle, tuning and the named surface's friction; ``stamped``:
+        its states are what their stamps say, e.g. an estimator's (``Nmpc``)."""
         from drift_control.nmpc import Nmpc   # CasADi and the compiled solver: when needed
         return Nmpc(self.vehicle, self.nmpc, self.mode if mode is None else mode,
-                    mu=self.surface.mu, supervisor=self.supervisor if supervised else None)
+                    mu=self.surface.mu, supervisor=self.supervisor if supervised else None,
+                    stamped=stamped)
 
     def check_reference(self) -> None:
         """ParamError (one line) when the path asks for a drift the car cannot hold

@@ -91,11 +91,15 @@ class Nmpc:
     supervisor : SupervisorParams, optional
         Watch steering authority and the sideslip envelope; a trip latches the fallback until
         ``reset()`` (see ``drift_control.supervisor``). None: no supervisor.
+    stamped : bool
+        Each state is what its stamp says (a state estimator's, an exact model's):
+        ``nmpc.state_age``, the ages of a measured state (the simulator's, a car gateway's),
+        is not predicted on.
     """
 
     def __init__(self, vehicle_params: VehicleParams, nmpc_params: NmpcParams,
                  mode: Mode = Mode.FULL, mu: float = 1.0,
-                 supervisor: SupervisorParams | None = None):
+                 supervisor: SupervisorParams | None = None, stamped: bool = False):
         if mode not in (Mode.FULL, Mode.TORQUE_ONLY):
             raise ValueError(f'mode must be FULL or TORQUE_ONLY, got {mode!r}')
         nmpc_params = for_vehicle(nmpc_params, vehicle_params)
@@ -127,6 +131,12 @@ class Nmpc:
         self.lag_learner = LagLearner(learning, nmpc_params.Ts, nmpc_params.torque_lag) \
             if learning.enabled and nmpc_params.torque_lag > 0 else None
         self._torque_samples = False   # observe_torque has been fed
+        # how old each measured state is (the driver's steering in TORQUE_ONLY: not ours to
+        # predict)
+        age = np.zeros(NXO) if stamped else np.array(nmpc_params.state_age, dtype=float)
+        if mode == Mode.TORQUE_ONLY:
+            age[X.DELTA] = 0.0
+        self._state_age = age if age.any() else None
         self.reset()
 
     @property
@@ -289,6 +299,8 @@ class Nmpc:
         T_act = self._T_act if self._w is not None else measured
         x = [state.V, state.beta, state.r, state.omega_F, state.omega_R, state.delta, T_act,
              T_last]
+        if self._state_age is not None and self._last is not None:
+            x[:NXO] = self._aged(x[:NXO + 1])
         curvature = None
         if ocp.path:   # where the car is on the path, and the path's curvature over the horizon
             curvature = path_curvature(ref, N)
@@ -331,6 +343,18 @@ class Nmpc:
         command = self._command_from_plan(X_pred, U_pred, now)
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
+
+    def _aged(self, x) -> list[float]:
+        """The measured vehicle states V .. delta moved on by their ages: one Euler step of the
+        model each (``x``: those states and the torque at the wheels), under the requests the
+        car has been given since the last cycle."""
+        last, u = self._last, np.zeros(NU)
+        if math.isfinite(last.delta_rate) and math.isfinite(last.drive_torque):
+            u[U.DELTA_DOT], u[U.T_R] = last.delta_rate, last.drive_torque
+        else:
+            u[U.T_R] = x[NXO]
+        x_dot = np.asarray(self.ocp.f_state(x, u, self.mu, self.lag)).ravel()[:NXO]
+        return list(np.asarray(x[:NXO]) + self._state_age * x_dot)
 
     FLIP_SIDE = 0.05     # a sideslip reference beyond this [rad] is on one side
     FLIP_STEADY = 0.01   # a flip ends when the horizon's sideslip references are this close [rad]

@@ -190,6 +190,8 @@ class NmpcParams:
     rear_lock_slip: float = 0.0     # the plan brakes the rear wheel to at most this
                                     # longitudinal slip, kappa >= -this (0: off)
     torque_lag_learning: LagLearningParams = field(default_factory=LagLearningParams)
+    state_age: tuple[float, ...] = (0.0,) * NXO   # how old each measured state is at its
+                                    # stamp, V .. delta [s]: predicted on by the model
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
@@ -213,6 +215,9 @@ class NmpcParams:
         require(0 <= self.disturbance_decay <= 1, 'nmpc.disturbance_decay', 'must be in [0, 1]')
         require(len(self.disturbance_max) == NXO and min(self.disturbance_max) >= 0,
                 'nmpc.disturbance_max', f'must be {NXO} values >= 0 (V .. delta)')
+        require(len(self.state_age) == NXO
+                and all(0 <= a < self.max_input_age for a in self.state_age), 'nmpc.state_age',
+                f'must be {NXO} values in [0, max_input_age) (V .. delta)')
 
     @property
     def dt(self) -> float:
@@ -315,6 +320,10 @@ class Ocp:
         f7 = ca.Function('f7', [x7, u_req, th],
                          [ca.vertcat(model.f(x9, u_wheel, th[:NTHETA])[:NXO], T_dot)])
         theta = ca.vertcat(0.0, mu_s, lag_s)   # curvature unused: no path states in the OCP
+        #: the model's time derivative, ``f_state(x, u, mu, lag)``: x the vehicle states V ..
+        #: delta and the torque at the wheels, u the requests (steering rate, torque)
+        self.f_state = ca.Function('f_state', [x7, u_req, mu_s, lag_s], [f7(x7, u_req, theta)],
+                                   ['x', 'u', 'mu', 'lag'], ['x_dot'])
         x_end = rk4_step(f7, xs[:NXO + 1], us, theta, params.dt, params.substeps)
         T_act_end = x_end[NXO] if lag > 0 else us[U.T_R]
         x_next = ca.vertcat(x_end[:NXO], T_act_end, us[U.T_R])

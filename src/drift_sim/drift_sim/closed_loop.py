@@ -45,9 +45,9 @@ class NmpcController:
     scenario's actual one: a ``--set surface.mu=...`` is a friction the controller does not know.
     """
 
-    def __init__(self, setup, supervised: bool = True, plans_at=()):
+    def __init__(self, setup, supervised: bool = True, plans_at=(), stamped: bool = False):
         from drift_control.nmpc import STATE_NAMES   # imported when used: heavy
-        self.nmpc = setup.build_nmpc(supervised=supervised)
+        self.nmpc = setup.build_nmpc(supervised=supervised, stamped=stamped)
         self.period = setup.nmpc.Ts
         self.trip_time: float | None = None   # when the supervisor latched the fallback [s]
         self._delta_col = STATE_NAMES.index('delta')
@@ -231,7 +231,8 @@ def run_closed_loop(scenario: str, overrides=(), seed: int | None = None,
     sc = loaded.scenario
     selector = setup.build_selector()
     ctrl = (Feedforward() if controller == 'feedforward' else
-            NmpcController(setup, supervised, plans_at))
+            NmpcController(setup, supervised, plans_at,
+                           stamped=sensors is not None or plant != 'double_track'))
     sim = Simulator(loaded) if plant == 'double_track' else SingleTrackSim(loaded, setup.vehicle)
     if sensors is not None:
         sim = SensedSim(sim, setup, cfg, sensors, estimator, sensor_set, sensor_faults,

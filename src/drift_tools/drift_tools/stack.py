@@ -265,6 +265,8 @@ def node_command(spec: NodeSpec, opts: RunOptions, clock_owner: str = 'sim',
     in_nmpc = spec.module == NMPC_MODULE and opts.sensors and opts.estimator_in == 'nmpc'
     if in_nmpc:
         params['state_source'] = 'sensors'
+    elif spec.module == NMPC_MODULE and opts.sensors:   # the estimator node's states
+        params['stamped_states'] = True
     if spec.module == ESTIMATOR_MODULE or in_nmpc:
         params['estimator'] = opts.estimator
         if opts.estimator_set:

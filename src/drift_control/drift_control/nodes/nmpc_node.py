@@ -59,7 +59,9 @@ class NmpcNode(Node):
                            with_map=source == 'sensors')
         params, surface = setup.nmpc, setup.surface
         mode = mode or (setup.scenario.control_mode if setup.scenario else 'full')
-        self._nmpc = setup.build_nmpc(MODES[mode])
+        # states an estimator made are what their stamps say: no state_age to predict on
+        stamped = self.declare_parameter('stamped_states', False).value or source == 'sensors'
+        self._nmpc = setup.build_nmpc(MODES[mode], stamped=bool(stamped))
         self._state = self._ref = self._last = None
         self._cmd_pub = self.create_publisher(DriftCommand, 'drift/command', kept_qos())
         self._status_pub = self.create_publisher(NmpcStatus, 'drift/nmpc/status', kept_qos())
