@@ -184,3 +184,14 @@ def test_the_nmpc_learns_from_its_own_requests_and_the_torque_samples(vp, params
     assert ctrl.lag_learner.window == (0, 0)
     assert step(5, V=math.nan).status != NmpcStatus.OK
     assert ctrl.lag_learner.window == (0, 0)
+
+
+def test_a_future_stamped_measurement_does_not_stop_the_learning():
+    """Measurements older than the newest are ignored: one stamped in the future goes with the
+    next request instead of shutting every later one out."""
+    u = steps(6.0)
+    learner = LagLearner(LagLearningParams(enabled=True), TS, initial=0.11)
+    learner.measure(1e6, 500.0)
+    drive(learner, u, powertrain(u, 0.07, 0.12, noise=10.0))
+    assert learner.fits > 10
+    assert learner.lag == pytest.approx(0.19, abs=0.012)

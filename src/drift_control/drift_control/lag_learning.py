@@ -104,6 +104,8 @@ class LagLearner:
         if self._requests and not 0.0 < t - self._requests[-1][0] < 2.5 * self.Ts:
             self.interrupt()
         self._requests.append((float(t), float(torque)))
+        while self._measured and self._measured[-1][0] > t:   # stamped in the future: never
+            self._measured.pop()                                # let one block the newer ones
         start = t - self.params.window
         while len(self._requests) > 1 and self._requests[1][0] <= start - self.params.delay_max:
             self._requests.popleft()
