@@ -994,9 +994,11 @@ def test_the_state_predicted_one_period_on_carries_the_pose(nmpc, eq30):
     assert math.atan2(nxt.y, nxt.x) == pytest.approx(course, abs=0.05)
 
 
-def test_a_measured_states_age_is_predicted_on(vp, params, eq30):
+@pytest.mark.parametrize('turned', [0.0, 0.004])
+def test_a_measured_states_age_is_predicted_on(vp, params, eq30, turned):
     """With ``state_age`` each measured state starts the plan moved on by its age under the
-    requests applied (one Euler step of the model); a stamped state (an estimator's) as is."""
+    torque requested and the steering rate measured (wheels that did not turn as asked, a weak
+    EPS, are not moved on); a stamped state (an estimator's) as is."""
     from drift_control.signals import Reference, VehicleState
     from drift_control.vehicle import NU, U
     age = np.array([0.01, 0.02, 0.01, 0.01, 0.01, 0.01])
@@ -1011,19 +1013,22 @@ def test_a_measured_states_age_is_predicted_on(vp, params, eq30):
             seen.append(np.array(w0[:NXO + 1])) or run(w0, p, *a)
         for k in range(2):
             state = VehicleState(stamp=k * 0.02, V=x[0], beta=x[1], r=x[2],
-                                 wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5],
+                                 wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5] + k * turned,
                                  drive_torque=eq30.T_R)
             result = ctrl.step(state, Reference(k * 0.02, eq30), k * 0.02)
             first.setdefault(stamped, result.command)
         assert np.allclose(seen[0][:NXO], x), 'no request applied yet: as measured'
         starts[stamped] = seen[1]
-    assert np.allclose(starts[True][:NXO], x)
+    x1 = x + np.eye(NXO)[5] * turned
+    assert np.allclose(starts[True][:NXO], x1)
+    assert abs(first[False].delta_rate) > 0.05, 'a steering rate asked'
     u = np.zeros(NU)
-    u[U.DELTA_DOT], u[U.T_R] = first[False].delta_rate, first[False].drive_torque
-    x_dot = np.asarray(ctrl.ocp.f_state(np.r_[x, starts[False][NXO]], u, ctrl.mu,
+    u[U.DELTA_DOT], u[U.T_R] = turned / 0.02, first[False].drive_torque
+    x_dot = np.asarray(ctrl.ocp.f_state(np.r_[x1, starts[False][NXO]], u, ctrl.mu,
                                         ctrl.lag)).ravel()[:NXO]
-    assert np.allclose(starts[False][:NXO], x + age * x_dot)
-    assert not np.allclose(starts[False][:NXO], x)
+    assert np.allclose(starts[False][:NXO], x1 + age * x_dot)
+    assert starts[False][5] == pytest.approx(x1[5] + 0.01 * turned / 0.02)
+    assert not np.allclose(starts[False][:NXO], x1)
 
 
 def test_the_state_age_names_its_key():

@@ -14,6 +14,7 @@ from drift_control.ocp import load_nmpc_params  # noqa: E402
 from drift_control.params import load_vehicle  # noqa: E402
 from drift_control.signals import Direction, Reference  # noqa: E402
 from drift_control.vehicle import NX, X  # noqa: E402
+from drift_msgs.msg import SensorSamples  # noqa: E402
 from drift_tools.bag_writer import BagWriter  # noqa: E402
 from drift_tools.rerun import rerun_controller  # noqa: E402
 
@@ -30,20 +31,27 @@ def recorded(tmp_path_factory):
     live = Nmpc(vp, params)
     bag_dir = tmp_path_factory.mktemp('rerun') / 'bag'
     commands = []
-    with BagWriter(bag_dir) as bag:
+    # the same run again with one raw sensor sample (an estimator's run)
+    with BagWriter(bag_dir) as bag, BagWriter(bag_dir.parent / 'with_sensors') as sensed:
         for topic, typ in (('/vehicle/state', 'VehicleState'), ('/drift/reference', 'DriftReference'),
                            ('/drift/command', 'DriftCommand')):
             bag.add_topic(topic, f'drift_msgs/msg/{typ}')
+            sensed.add_topic(topic, f'drift_msgs/msg/{typ}')
+        sensed.add_topic('/vehicle/sensors', 'drift_msgs/msg/SensorSamples')
+        sensed.write('/vehicle/sensors', ser.serialize_message(SensorSamples()),
+                     int(round(state.stamp * 1e9)))
         for _ in range(40):
             ref = Reference(stamp=state.stamp, target=eq, direction=Direction.LEFT)
             t_ns = int(round(state.stamp * 1e9))
-            bag.write('/vehicle/state', ser.serialize_message(convert.state_to_msg(state)), t_ns)
-            bag.write('/drift/reference', ser.serialize_message(convert.reference_to_msg(ref)), t_ns)
             result = live.step(state, ref, state.stamp)
             commands.append(result.command)
-            bag.write('/drift/command',
-                      ser.serialize_message(convert.command_to_msg(result.command, state.stamp)),
-                      t_ns + 1)
+            for out in (bag, sensed):
+                out.write('/vehicle/state', ser.serialize_message(convert.state_to_msg(state)),
+                          t_ns)
+                out.write('/drift/reference',
+                          ser.serialize_message(convert.reference_to_msg(ref)), t_ns)
+                out.write('/drift/command', ser.serialize_message(
+                    convert.command_to_msg(result.command, state.stamp)), t_ns + 1)
             state = plant.step(result.command, params.Ts)
     return bag_dir, vp, params, commands
 
@@ -67,3 +75,20 @@ def test_a_bag_without_commands_is_refused(tmp_path):
         bag.add_topic('/vehicle/state', 'drift_msgs/msg/VehicleState')
     with pytest.raises(ValueError, match='nothing recorded'):
         rerun_controller(tmp_path / 'bag')
+
+
+
+@pytest.mark.parametrize('bag', ['bag', 'with_sensors'])
+def test_an_estimators_states_are_rerun_as_stamped(recorded, monkeypatch, bag):
+    """A bag with the raw sensor samples holds the estimator's states, which are what their
+    stamps say: the re-run's NMPC does not move them on by ``nmpc.state_age``."""
+    import drift_tools.rerun as rerun
+    bag_dir, vp, params, commands = recorded
+    built = []
+
+    def build(*args):
+        built.append(args[-1])
+        return Nmpc(vp, params, stamped=args[-1])
+    monkeypatch.setattr(rerun, '_build_nmpc', build)
+    result = rerun.rerun_controller(bag_dir.parent / bag)
+    assert built == [bag == 'with_sensors'] and result.commands == len(commands)

@@ -16,6 +16,7 @@ import numpy as np
 from drift_tools.bag import read_bag
 
 STATE, REFERENCE, COMMAND = '/vehicle/state', '/drift/reference', '/drift/command'
+SENSORS = '/vehicle/sensors'   # recorded: the states are the estimator's (stamped)
 
 
 @dataclass(frozen=True)
@@ -50,7 +51,8 @@ def _stamp(msg) -> float:
 
 
 def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | None = None,
-                     config=None, nmpc=None, vehicle: str | None = None) -> RerunResult:
+                     config=None, nmpc=None, vehicle: str | None = None,
+                     stamped: bool | None = None) -> RerunResult:
     """Step the NMPC on the bag's states and references at its command times.
 
     Parameters
@@ -66,17 +68,21 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
         The car the run drove (default: ``config/defaults.yaml``'s).
     nmpc : drift_control.nmpc.Nmpc, optional
         A ready controller (tests); built from the config otherwise.
+    stamped : bool, optional
+        The recorded states are what their stamps say (an estimator's: ``nmpc.state_age`` is
+        not applied to them). Default: when the bag holds the raw sensor samples.
     """
     # the message converter lives with the nodes; bags decode to objects with the same fields
     from drift_control.nodes import convert
     from drift_control.signals import Mode
 
-    messages = read_bag(bag_dir, topics=[STATE, REFERENCE, COMMAND])
+    messages = read_bag(bag_dir, topics=[STATE, REFERENCE, COMMAND, SENSORS])
     missing = [t for t in (STATE, REFERENCE, COMMAND) if not messages.get(t)]
     if missing:
         raise ValueError(f'{bag_dir}: nothing recorded on {missing}: cannot re-run the controller')
     if nmpc is None:
-        nmpc = _build_nmpc(control_mode, surface, config, vehicle)
+        stamped = bool(messages.get(SENSORS)) if stamped is None else stamped
+        nmpc = _build_nmpc(control_mode, surface, config, vehicle, stamped)
     states = sorted((_stamp(m.msg), m.msg) for m in messages[STATE])
     refs = sorted((_stamp(m.msg), m.msg) for m in messages[REFERENCE])
     state_t = np.array([t for t, _ in states])
@@ -109,9 +115,10 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
                        peak(d_torque), mode_mismatches, not_ok)
 
 
-def _build_nmpc(control_mode: str, surface: str | None, config, vehicle: str | None):
+def _build_nmpc(control_mode: str, surface: str | None, config, vehicle: str | None,
+                stamped: bool):
     from drift_control.assembly import MODES, load_setup
     if control_mode not in MODES:
         raise ValueError(f'control_mode must be one of {list(MODES)}, got {control_mode!r}')
     setup = load_setup(config, vehicle=vehicle, surface=surface or 'dry', with_map=False)
-    return setup.build_nmpc(MODES[control_mode])
+    return setup.build_nmpc(MODES[control_mode], stamped=stamped)
