@@ -996,14 +996,16 @@ def test_the_state_predicted_one_period_on_carries_the_pose(nmpc, eq30):
 
 @pytest.mark.parametrize('turned', [0.0, 0.004])
 def test_a_measured_states_age_is_predicted_on(vp, params, eq30, turned):
-    """With ``state_age`` each measured state starts the plan moved on by its age under the
-    torque requested and the steering rate measured (wheels that did not turn as asked, a weak
-    EPS, are not moved on); a stamped state (an estimator's) as is."""
+    """With ``state_age`` each measured state starts the plan moved on by its age: speed and
+    sideslip at the rates the measured accelerations give, the yaw rate and wheels by the model
+    under the torque requested, the steering at the rate measured (wheels that did not turn as
+    asked, a weak EPS, are not moved on); a stamped state (an estimator's) as is."""
     from drift_control.signals import Reference, VehicleState
-    from drift_control.vehicle import NU, U
+    from drift_control.vehicle import NU, U, velocity_rates
     age = np.array([0.01, 0.02, 0.01, 0.01, 0.01, 0.01])
     x = np.array([eq30.V, eq30.beta + 0.05, eq30.r, eq30.omega_F, eq30.omega_R,
                   eq30.delta + 0.02])   # off the equilibrium: the states move
+    ax, ay = 0.4, 7.5
     starts, first = {}, {}
     for stamped in (False, True):
         ctrl = Nmpc(vp, dataclasses.replace(params, state_age=tuple(age)), stamped=stamped)
@@ -1012,7 +1014,7 @@ def test_a_measured_states_age_is_predicted_on(vp, params, eq30, turned):
         ctrl._solver.solve = lambda w0, p, *a, run=run, seen=seen: \
             seen.append(np.array(w0[:NXO + 1])) or run(w0, p, *a)
         for k in range(2):
-            state = VehicleState(stamp=k * 0.02, V=x[0], beta=x[1], r=x[2],
+            state = VehicleState(stamp=k * 0.02, V=x[0], beta=x[1], r=x[2], ax=ax, ay=ay,
                                  wheel_speeds=(x[3], x[3], x[4], x[4]), delta=x[5] + k * turned,
                                  drive_torque=eq30.T_R)
             result = ctrl.step(state, Reference(k * 0.02, eq30), k * 0.02)
@@ -1026,9 +1028,32 @@ def test_a_measured_states_age_is_predicted_on(vp, params, eq30, turned):
     u[U.DELTA_DOT], u[U.T_R] = turned / 0.02, first[False].drive_torque
     x_dot = np.asarray(ctrl.ocp.f_state(np.r_[x1, starts[False][NXO]], u, ctrl.mu,
                                         ctrl.lag)).ravel()[:NXO]
+    x_dot[:2] = velocity_rates(x1[0], x1[1], x1[2], ax, ay)
     assert np.allclose(starts[False][:NXO], x1 + age * x_dot)
     assert starts[False][5] == pytest.approx(x1[5] + 0.01 * turned / 0.02)
     assert not np.allclose(starts[False][:NXO], x1)
+
+
+def test_an_impossible_acceleration_is_not_used_to_age_the_state(vp, params, eq30):
+    """A finite but impossible accelerometer reading (a sensor fault) leaves the speed and
+    sideslip to the model: the plan starts where a plausible reading would have put it."""
+    from drift_control.signals import Reference, VehicleState
+    age = (0.01, 0.02, 0.01, 0.01, 0.01, 0.01)
+    starts = []
+    for ay in (7.5, 1e4):
+        ctrl = Nmpc(vp, dataclasses.replace(params, state_age=age))
+        seen = []
+        run = ctrl._solver.solve
+        ctrl._solver.solve = lambda w0, p, *a, run=run, seen=seen: \
+            seen.append(np.array(w0[:NXO])) or run(w0, p, *a)
+        for k in range(2):
+            state = VehicleState(stamp=k * 0.02, V=eq30.V, beta=eq30.beta, r=eq30.r, ay=ay,
+                                 wheel_speeds=(eq30.omega_F,) * 2 + (eq30.omega_R,) * 2,
+                                 delta=eq30.delta, drive_torque=eq30.T_R)
+            ctrl.step(state, Reference(k * 0.02, eq30), k * 0.02)
+        starts.append(seen[1])
+    assert abs(starts[1][1] - eq30.beta) < 0.01, 'the sideslip moved by the model, not 1e4'
+    assert not np.allclose(starts[0], starts[1])
 
 
 def test_the_state_age_names_its_key():

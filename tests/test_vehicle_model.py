@@ -7,7 +7,8 @@ import pytest
 
 from drift_control.params import load_vehicle
 from drift_control.vehicle import (NX, THETA, U, X, VehicleModel, axle_torque,
-                                   front_axle_course, mirror_input, mirror_state, rhs, slips)
+                                   front_axle_course, mirror_input, mirror_state, rhs, slips,
+                                   velocity_rates)
 
 
 @pytest.fixture(scope='module')
@@ -78,6 +79,23 @@ def test_mirroring_left_right_mirrors_the_derivative(model, vp):
         mirrored = model.rhs(mirror_state(xi), mirror_input(ui), -ti[THETA.K], ti[THETA.MU])
         expected = mirror_state(model.rhs(xi, ui, *ti))
         np.testing.assert_allclose(mirrored, expected, rtol=1e-10, atol=1e-9)
+
+
+def test_rates_from_measured_accelerations_are_the_models_on_its_own(vp, model):
+    """``velocity_rates`` fed the body accelerations the model's forces give (what an ideal
+    accelerometer at the centre of gravity reads) returns the model's V_dot and beta_dot."""
+    x, u, theta = random_states(vp, 200, seed=4)
+    for xi, ui, ti in zip(x, u, theta):
+        f = model.forces(xi, mu=ti[THETA.MU])
+        V, beta, delta = xi[X.V], xi[X.BETA], xi[X.DELTA]
+        ax = (f.F_xF * math.cos(delta) - f.F_yF * math.sin(delta) + f.F_xR
+              - vp.c_drag * V * V * math.cos(beta)) / vp.m
+        ay = (f.F_xF * math.sin(delta) + f.F_yF * math.cos(delta) + f.F_yR
+              - vp.c_drag * V * V * math.sin(beta)) / vp.m
+        x_dot = model.rhs(xi, ui, *ti)
+        V_dot, beta_dot = velocity_rates(V, beta, xi[X.R], ax, ay)
+        assert V_dot == pytest.approx(x_dot[X.V], rel=1e-9, abs=1e-9)
+        assert beta_dot == pytest.approx(x_dot[X.BETA], rel=1e-6, abs=1e-6)
 
 
 def test_float_and_casadi_evaluations_agree(model, vp):

@@ -30,7 +30,7 @@ from drift_control.plausibility import InputChecker
 from drift_control.signals import Command, Direction, Mode, Reference, Validity, VehicleState
 from drift_control.supervisor import Supervisor, SupervisorParams
 from drift_control.tyre import simple_peak_slip
-from drift_control.vehicle import NU, U, X, front_axle_course
+from drift_control.vehicle import NU, U, X, front_axle_course, velocity_rates
 
 log = logging.getLogger(__name__)
 
@@ -304,7 +304,7 @@ class Nmpc:
         x = [state.V, state.beta, state.r, state.omega_F, state.omega_R, state.delta, T_act,
              T_last]
         if self._state_age is not None and self._last is not None:
-            x[:NXO] = self._aged(x[:NXO + 1])
+            x[:NXO] = self._aged(x[:NXO + 1], state)
         curvature = None
         if ocp.path:   # where the car is on the path, and the path's curvature over the horizon
             curvature = path_curvature(ref, N)
@@ -358,11 +358,13 @@ class Nmpc:
             rate = (state.delta - seen[1]) / (state.stamp - seen[0])
         self._steering_seen = state.stamp, state.delta, rate
 
-    def _aged(self, x) -> list[float]:
-        """The measured vehicle states V .. delta moved on by their ages: one Euler step of the
-        model each (``x``: those states and the torque at the wheels), under the torque asked
-        since the last cycle and the steering rate the wheels were measured to turn at (a weak
-        EPS does not deliver the asked one; the asked rate when there is no measured one)."""
+    def _aged(self, x, state: VehicleState) -> list[float]:
+        """The measured vehicle states V .. delta moved on by their ages (``x``: those states
+        and the torque at the wheels): one Euler step each, speed and sideslip at the rates the
+        measured accelerations give (the car's own, not the model's tyres), the yaw rate and
+        wheels by the model under the torque asked since the last cycle, the steering at the
+        rate the wheels were measured to turn (a weak EPS does not deliver the asked one; the
+        asked rate when there is no measured one)."""
         last, u = self._last, np.zeros(NU)
         if math.isfinite(last.delta_rate) and math.isfinite(last.drive_torque):
             u[U.DELTA_DOT], u[U.T_R] = last.delta_rate, last.drive_torque
@@ -372,7 +374,12 @@ class Nmpc:
         if measured_rate is not None:
             u[U.DELTA_DOT] = measured_rate
         x_dot = np.asarray(self.ocp.f_state(x, u, self.mu, self.lag)).ravel()[:NXO]
+        if state.has(Validity.AX_AY) and math.hypot(state.ax, state.ay) <= self.ACCEL_MAX:
+            x_dot[X.V], x_dot[X.BETA] = velocity_rates(x[X.V], x[X.BETA], x[X.R], state.ax,
+                                                       state.ay)
         return list(np.asarray(x[:NXO]) + self._state_age * x_dot)
+
+    ACCEL_MAX = 20.0     # a measured acceleration beyond any tyre's grip [m/s^2]: not used
 
     FLIP_SIDE = 0.05     # a sideslip reference beyond this [rad] is on one side
     FLIP_STEADY = 0.01   # a flip ends when the horizon's sideslip references are this close [rad]

@@ -82,6 +82,14 @@ def front_axle_course(V: float, beta: float, r: float, a: float) -> float:
     return math.atan2(V * math.sin(beta) + a * r, max(V * math.cos(beta), 0.1))
 
 
+def velocity_rates(V: float, beta: float, r: float, ax: float, ay: float) -> tuple:
+    """``(V_dot, beta_dot)`` from the body's measured accelerations at the centre of gravity
+    (x forward, y left) [m/s^2], numeric: ``rhs``'s Newton in the velocity frame with the
+    accelerations measured instead of modelled."""
+    cos_b, sin_b = math.cos(beta), math.sin(beta)
+    return ax * cos_b + ay * sin_b, (ay * cos_b - ax * sin_b) / max(V, 1.0) - r
+
+
 def slips(x, p: VehicleParams):
     """Slip angles and longitudinal slips (alpha_F, kappa_F, alpha_R, kappa_R).
 
