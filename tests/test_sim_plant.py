@@ -179,4 +179,3 @@ def test_a_wrong_override_is_named():
         load_plant_params(overrides=('lsd.lockng=0.5',))
     with pytest.raises(ParamError, match='measurement'):
         load_plant_params(overrides=('measurement.speed={std: 1, delay: 0}',))
-
