@@ -190,7 +190,7 @@ class Nmpc:
             if state_problem is None and not self._torque_samples \
                     and state.has(Validity.DRIVE_TORQUE):
                 learner.measure(state.stamp - learner.params.signal_delay, state.drive_torque)
-        if state_problem is None:
+        if state_problem is None and self._state_age is not None:
             self._see_steering(state)
         ref_problem = self._reference_problem(ref, now) if state_problem is None else None
         tripped = self.supervisor.check(state, ref, self._last, now) \

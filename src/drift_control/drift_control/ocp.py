@@ -191,7 +191,7 @@ class NmpcParams:
                                     # longitudinal slip, kappa >= -this (0: off)
     torque_lag_learning: LagLearningParams = field(default_factory=LagLearningParams)
     state_age: tuple[float, ...] = (0.0,) * NXO   # how old each measured state is at its
-                                    # stamp, V .. delta [s]: predicted on by the model
+                                    # stamp, V .. delta [s]: predicted on before the plan
 
     def __post_init__(self):
         require(self.N >= 2, 'nmpc.N', 'must be >= 2')
