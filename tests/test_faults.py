@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 from drift_control.equilibrium import solve_equilibrium
-from drift_control.nmpc import LockstepTrigger, NmpcStatus
+from drift_control.nmpc import LockstepTrigger, Nmpc, NmpcStatus
 from drift_control.ocp import load_nmpc_params
 from drift_control.pacing import PeriodGate
 from drift_control.params import load_vehicle
 from drift_control.plausibility import InputChecker, InputLimits
 from drift_control.signals import Command, Direction, Mode, Reference, VehicleState
+from drift_control.supervisor import SupervisorParams
+from drift_control.vehicle import front_axle_course
 from drift_sim.lockstep import LockstepGate
 
 TS = 0.02
@@ -438,3 +440,27 @@ def test_the_nmpc_trigger_takes_the_phase_of_the_reference_node():
             solves.append(round(trig.fired() / 0.01))
     assert waited == 2 and solves[:2] == [0, 2]
     assert solves[2:] == list(range(3, 40, 2)), 'every odd state, with its reference'
+
+
+
+def test_a_trip_gives_the_drift_up(vp, eq30):
+    """After the supervisor's trip the torque is off at once, engine braking while the rear
+    wheels spin over the ground, and the steering heads for the front axle's course (here past
+    the counter-steer of the drift's equilibrium, which the last command held)."""
+    nmpc = Nmpc(vp, load_nmpc_params(), supervisor=SupervisorParams())
+    now = _engaged(nmpc, eq30)
+    last, ref = nmpc._last, Reference(now, eq30, Direction.LEFT)
+    spinning = _state(eq30, now, 99, beta=-1.2, r=1.0)   # beyond 60 deg of sideslip
+    res = nmpc.step(spinning, ref, now)
+    _assert_safe(res, vp, 'supervisor')
+    ground = spinning.V * math.cos(spinning.beta)
+    assert spinning.omega_R * vp.R_R > 1.5 * ground
+    assert res.command.drive_torque == nmpc.bounds.T_R_min, 'engine braking'
+    step = nmpc.params.fallback_delta_rate * TS
+    assert front_axle_course(spinning.V, spinning.beta, spinning.r, vp.a) < last.delta - step
+    assert res.command.delta == pytest.approx(last.delta - step), 'toward the course'
+    now += TS
+    rolling = (eq30.omega_F,) * 2 + (ground / vp.R_R,) * 2
+    res = nmpc.step(dataclasses.replace(spinning, stamp=now, wheel_speeds=rolling), ref, now)
+    _assert_safe(res, vp, 'supervisor')
+    assert res.command.drive_torque == 0.0, 'no torque once the rear wheels roll'

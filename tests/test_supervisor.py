@@ -153,5 +153,5 @@ def test_nmpc_with_a_supervisor_latches_its_fallback_when_the_steering_does_not_
     assert 0.05 <= first * 0.02 <= 0.5, 'trips once enough motion was asked for, not at once'
     assert all(s == NmpcStatus.FALLBACK for s in statuses[first:]), 'latched'
     assert 'steering authority' in nmpc.supervisor.reason
-    assert abs(torques[-1]) < abs(torques[first - 1])          # torque ramps down
-    assert np.all(np.abs(np.diff(torques[first:])) <= 3000.0 * 0.02 + 1e-6)
+    # the torque off at once, engine braking only while the rear wheels spin over the ground
+    assert set(torques[first:]) <= {0.0, nmpc.bounds.T_R_min} and torques[-1] == 0.0

@@ -196,7 +196,8 @@ class Nmpc:
         tripped = self.supervisor.check(state, ref, self._last, now) \
             if self.supervisor is not None and self._engaged else None
         if tripped is not None:   # latched: no more solving into a car that does not follow
-            result = self._fallback(state, ref, now, f'supervisor: {tripped}', 0.0, 0)
+            result = self._fallback(state, ref, now, f'supervisor: {tripped}', 0.0, 0,
+                                    tripped=True)
         elif state_problem is not None:
             result = self._failed(state, ref, now, state_problem, solve_time=0.0, iterations=0,
                                   shift=False)
@@ -619,12 +620,16 @@ class Nmpc:
         return self._fallback(state, ref, now, reason, solve_time, iterations)
 
     def _fallback(self, state, ref, now, reason: str, solve_time: float,
-                  iterations: int) -> NmpcResult:
-        """The safe fallback: torque ramped down, steering rate-limited toward the reference."""
+                  iterations: int, tripped: bool = False) -> NmpcResult:
+        """The safe fallback: torque ramped down, steering rate-limited toward the reference
+        (after a supervisor's trip: the drift abandoned, ``_trip_command``)."""
         if self._w is not None:
             log.warning('NMPC fallback: %s', reason)
         self._w = None   # the old plan is no longer a warm start; the next solve starts cold
-        command = self._fallback_command(ref, now)
+        if tripped:
+            command = self._trip_command(state, now)
+        else:
+            command = self._fallback_command(ref, now)
         return NmpcResult(command, False, NmpcStatus.FALLBACK, solve_time, iterations, math.nan,
                           np.zeros((0, NXO)), np.zeros((0, 2)), f'fallback: {reason}',
                           self._failures)
@@ -650,6 +655,26 @@ class Nmpc:
         torque = start - _clip(start, -T_step, T_step)   # one step nearer zero
         if self.mode == Mode.TORQUE_ONLY:
             return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
+        return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
+
+    def _trip_command(self, state: VehicleState | None, now: float) -> Command:
+        """After a supervisor's trip the drift is given up, not continued: the torque off at
+        once, engine braking while the rear wheels spin more than ``fallback_trip_slip`` over
+        the ground (a spinning wheel has no side grip to give), and the steering rate-limited
+        toward the front axle's course (no front slip: the front tyres' aligning moment, which
+        a weak steering could not hold, is gone), not toward the drift's counter-steer."""
+        last, Ts = self._last, self.params.Ts
+        torque, target = 0.0, last.delta
+        if state is not None and state.is_finite():
+            target = self._clip_delta(front_axle_course(state.V, state.beta, state.r, self._a))
+            ground = state.V * math.cos(state.beta)
+            if state.omega_R * self._R_R - ground > self.params.fallback_trip_slip * max(ground,
+                                                                                          1.0):
+                torque = self.bounds.T_R_min
+        if self.mode == Mode.TORQUE_ONLY:
+            return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
+        step = _clip(target - last.delta, -self.params.fallback_delta_rate * Ts,
+                     self.params.fallback_delta_rate * Ts)
         return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
 
     # --- output ---------------------------------------------------------------------------------

@@ -175,6 +175,8 @@ class NmpcParams:
     max_failures: int = 3           # consecutive failures served by the shifted plan [-]
     fallback_torque_rate: float = 3000.0   # torque ramp-down rate in fallback [Nm/s]
     fallback_delta_rate: float = 0.3       # steering rate toward the reference delta [rad/s]
+    fallback_trip_slip: float = 0.1        # after a trip: engine braking while the rear wheels
+                                           # spin this much faster than the ground [-]
     torque_only_hold_stages: int = 1       # TORQUE_ONLY: stages the driver is assumed to hold
     torque_lag: float = 0.0         # powertrain: first-order lag of the drive torque [s]; 0: none
     disturbance_gain: float = 0.0   # offset-free: share of the prediction error taken per step
@@ -203,6 +205,7 @@ class NmpcParams:
         require(self.max_failures >= 0, 'nmpc.max_failures', 'must be >= 0')
         require(self.fallback_torque_rate > 0 and self.fallback_delta_rate > 0, 'nmpc.fallback_*',
                 'rates must be positive')
+        require(self.fallback_trip_slip > 0, 'nmpc.fallback_trip_slip', 'must be positive')
         require(0 <= self.torque_only_hold_stages < self.N, 'nmpc.torque_only_hold_stages',
                 'must be in [0, N)')
         require(self.torque_lag >= 0, 'nmpc.torque_lag', 'must be >= 0')
