@@ -1,5 +1,6 @@
 """Re-running the controller on a recorded run reproduces the recorded commands."""
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -78,17 +79,22 @@ def test_a_bag_without_commands_is_refused(tmp_path):
 
 
 
-@pytest.mark.parametrize('bag', ['bag', 'with_sensors'])
-def test_an_estimators_states_are_rerun_as_stamped(recorded, monkeypatch, bag):
+@pytest.mark.parametrize('bag', ['bag', 'with_sensors', 'with_sensors, no metadata'])
+def test_an_estimators_states_are_rerun_as_stamped(recorded, monkeypatch, tmp_path, bag):
     """A bag with the raw sensor samples holds the estimator's states, which are what their
-    stamps say: the re-run's NMPC does not move them on by ``nmpc.state_age``."""
+    stamps say: the re-run's NMPC does not move them on by ``nmpc.state_age``. The metadata
+    tells; without it (a salvaged bag) the messages."""
     import drift_tools.rerun as rerun
     bag_dir, vp, params, commands = recorded
+    path = bag_dir.parent / bag.split(',')[0]
+    if bag.endswith('no metadata'):
+        path = shutil.copytree(path, tmp_path / 'salvaged')
+        (path / 'metadata.yaml').unlink()
     built = []
 
     def build(*args):
         built.append(args[-1])
         return Nmpc(vp, params, stamped=args[-1])
     monkeypatch.setattr(rerun, '_build_nmpc', build)
-    result = rerun.rerun_controller(bag_dir.parent / bag)
-    assert built == [bag == 'with_sensors'] and result.commands == len(commands)
+    result = rerun.rerun_controller(path)
+    assert built == [bag != 'bag'] and result.commands == len(commands)

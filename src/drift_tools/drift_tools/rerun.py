@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drift_tools.bag import read_bag
+from drift_tools.bag import bag_info, is_finished, read_bag
 
 STATE, REFERENCE, COMMAND = '/vehicle/state', '/drift/reference', '/drift/command'
 SENSORS = '/vehicle/sensors'   # recorded: the states are the estimator's (stamped)
@@ -76,12 +76,12 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
     from drift_control.nodes import convert
     from drift_control.signals import Mode
 
-    messages = read_bag(bag_dir, topics=[STATE, REFERENCE, COMMAND, SENSORS])
+    messages = read_bag(bag_dir, topics=[STATE, REFERENCE, COMMAND])
     missing = [t for t in (STATE, REFERENCE, COMMAND) if not messages.get(t)]
     if missing:
         raise ValueError(f'{bag_dir}: nothing recorded on {missing}: cannot re-run the controller')
     if nmpc is None:
-        stamped = bool(messages.get(SENSORS)) if stamped is None else stamped
+        stamped = _has_sensors(bag_dir) if stamped is None else stamped
         nmpc = _build_nmpc(control_mode, surface, config, vehicle, stamped)
     states = sorted((_stamp(m.msg), m.msg) for m in messages[STATE])
     refs = sorted((_stamp(m.msg), m.msg) for m in messages[REFERENCE])
@@ -113,6 +113,18 @@ def rerun_controller(bag_dir: Path, control_mode: str = 'full', surface: str | N
 
     return RerunResult(len(d_delta), skipped, rms(d_delta), peak(d_delta), rms(d_torque),
                        peak(d_torque), mode_mismatches, not_ok)
+
+
+def _has_sensors(bag_dir: Path) -> bool:
+    """Whether the bag holds sensor samples: its ``metadata.yaml`` says, else (a salvaged bag)
+    its messages on that topic."""
+    if is_finished(bag_dir):
+        try:
+            topic = bag_info(bag_dir).topics.get(SENSORS)
+            return topic is not None and topic.count > 0
+        except (OSError, ValueError):   # no readable metadata: the messages tell
+            pass
+    return bool(read_bag(bag_dir, topics=[SENSORS]).get(SENSORS))
 
 
 def _build_nmpc(control_mode: str, surface: str | None, config, vehicle: str | None,
