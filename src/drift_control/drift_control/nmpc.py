@@ -161,8 +161,6 @@ class Nmpc:
                                                    # its front axle courses, rear wheel floors)
         self._flipping = False                     # the reference flips sides (latched)
         self._flip_seen = -math.inf                # a horizon not on one side: when last [s]
-        self._steering_seen: tuple | None = None   # the last measured steering (stamp, angle,
-                                                   # rate since the one before, or None)
         if getattr(self, 'supervisor', None) is not None:
             self.supervisor.reset()
         if getattr(self, 'lag_learner', None) is not None:
@@ -190,8 +188,6 @@ class Nmpc:
             if state_problem is None and not self._torque_samples \
                     and state.has(Validity.DRIVE_TORQUE):
                 learner.measure(state.stamp - learner.params.signal_delay, state.drive_torque)
-        if state_problem is None and self._state_age is not None:
-            self._see_steering(state)
         ref_problem = self._reference_problem(ref, now) if state_problem is None else None
         tripped = self.supervisor.check(state, ref, self._last, now) \
             if self.supervisor is not None and self._engaged else None
@@ -349,31 +345,19 @@ class Nmpc:
         return NmpcResult(command, True, NmpcStatus.OK, solve_time, out.iterations, out.cost,
                           X_pred[:, :NXO], U_pred, str(out.status))
 
-    def _see_steering(self, state: VehicleState) -> None:
-        """Keep the measured steering angle and the rate the wheels turned at since the
-        previous sample (none after a gap of more than 2.5 control periods)."""
-        seen, rate = self._steering_seen, None
-        if seen is not None and state.stamp == seen[0]:
-            return
-        if seen is not None and 0.0 < state.stamp - seen[0] <= 2.5 * self.params.Ts:
-            rate = (state.delta - seen[1]) / (state.stamp - seen[0])
-        self._steering_seen = state.stamp, state.delta, rate
-
     def _aged(self, x, state: VehicleState) -> list[float]:
         """The measured vehicle states V .. delta moved on by their ages (``x``: those states
         and the torque at the wheels): one Euler step each, speed and sideslip at the rates the
         measured accelerations give (the car's own, not the model's tyres), the yaw rate and
         wheels by the model under the torque asked since the last cycle, the steering at the
-        rate the wheels were measured to turn (a weak EPS does not deliver the asked one; the
-        asked rate when there is no measured one)."""
+        rate asked (not at the measured one: fed back into the next command, that derivative
+        of a noisy angle around a slow steering actuator sets the torque chattering; a
+        steering that does not deliver the asked rate is the supervisor's to catch)."""
         last, u = self._last, np.zeros(NU)
         if math.isfinite(last.delta_rate) and math.isfinite(last.drive_torque):
             u[U.DELTA_DOT], u[U.T_R] = last.delta_rate, last.drive_torque
         else:
             u[U.T_R] = x[NXO]
-        measured_rate = self._steering_seen[2] if self._steering_seen is not None else None
-        if measured_rate is not None:
-            u[U.DELTA_DOT] = measured_rate
         x_dot = np.asarray(self.ocp.f_state(x, u, self.mu, self.lag)).ravel()[:NXO]
         if state.has(Validity.AX_AY) and math.hypot(state.ax, state.ay) <= self.ACCEL_MAX:
             x_dot[X.V], x_dot[X.BETA] = velocity_rates(x[X.V], x[X.BETA], x[X.R], state.ax,
