@@ -10,7 +10,7 @@ import pytest
 from drift_control import path as P
 from drift_control.params import ParamError, config_dir, from_dict
 from drift_control.reference import (ReferenceParams, ReferenceSelector, check_horizon_spacing,
-                                     load_reference_params, mirrored_reference)
+                                     flip_samples, load_reference_params, mirrored_reference)
 from drift_control.signals import Direction, Equilibrium, Validity, VehicleState
 
 R = 15.0
@@ -623,3 +623,25 @@ def test_a_blended_lookup_stays_within_the_flip_radius():
     assert many._equilibria([(0.5, 0.0, 0.5)])[0][0] == mid   # the horizon's lookups too
     off = ReferenceSelector(steady_circle_lookup, drift_circle(), params())
     assert off.equilibrium(0.5, 0.0, 0.5)[0].V == pytest.approx(math.sqrt(A_LAT * 50.0))
+
+
+def test_only_a_flip_is_looked_up_within_the_flip_radius():
+    """The cap is the flip's, between curves of opposite sides: an exit's straight (a curve on
+    one side only) blends left and right at the map's largest radius as without the cap."""
+    prof = P.SideslipProfile(math.radians(30.0))
+    flip, figure8 = P.alternating(R, 30.0, sideslip=prof), P.figure8(R, 30.0, sideslip=prof)
+    band = 1.0 / RADIUS_RANGE[1]
+    assert flip_samples(flip.K, band, False).any()
+    assert not flip_samples(exit_path().K, band, False).any()
+    crossings = flip_samples(figure8.K, band, True)   # a closed lap: around the seam too
+    assert np.count_nonzero(crossings & ~np.roll(crossings, 1)) == 2, 'both crossings'
+    speeds = {}
+    for name, path, s in (('flip', flip, 2 * math.pi * R + 10.0), ('exit', exit_path(), 150.0)):
+        for cap in (0.0, 20.0):
+            sel = ReferenceSelector(steady_circle_lookup, path, params(flip_radius_max=cap),
+                                    lookup_many=lambda asks: [steady_circle_lookup(*a)
+                                                              for a in asks])
+            ref = sel.select(state_on(path, s, beta=0.0))
+            speeds[name, cap] = [e.V for e in ref.horizon]
+    assert speeds['exit', 20.0] == speeds['exit', 0.0]
+    assert min(np.subtract(speeds['flip', 20.0], speeds['flip', 0.0])) < -1.0

@@ -134,6 +134,10 @@ class Path:
             return np.mod(s, self.length)
         return np.clip(s, 0.0, self.length)
 
+    def index_at(self, s):
+        """Index of the sample at or before arc length ``s`` [m]."""
+        return self._segment(s)[0]
+
     def _segment(self, s):
         """Sample index before ``s``, the one after it, and the fraction between them."""
         u = np.asarray(self.lap_position(s)) / self.ds

@@ -75,8 +75,10 @@ class ReferenceParams:
                                   # caught: the reference continues from it (0: off)
     entry_lead: float = 0.0       # in the entry the sideslip reference leads the car's sideslip
                                   # to the drift side by at most this [rad] (0: off)
-    flip_radius_max: float = 0.0  # left and right blended (a flip, grip on a straight): looked
-                                  # up at most at this radius [m] (0: radius_max)
+    flip_radius_max: float = 0.0  # left and right blended in a flip (a straighter stretch
+                                  # between curves of opposite sides): looked up at most at this
+                                  # radius [m] (0: radius_max); a straight after one curve only
+                                  # (an exit) is not a flip
     window_back: float = 5.0      # Frenet search window behind the last projection [m]
     window_forward: float = 15.0  # ... and ahead of it [m]
     lost_distance: float = 5.0    # beyond this distance from the path search globally [m]
@@ -175,6 +177,9 @@ class ReferenceSelector:
         self._caught = 0.0     # sideslip of a slide caught in the entry [rad]
         self.rejected = 0      # states refused as non-finite or without a pose
         self._speed_plan = self._plan_speed() if params.drift_speed_fall > 0.0 else None
+        #: per path sample: a flip's stretch, where a blend is looked up at ``flip_radius_max``
+        self._flips = (flip_samples(path.K, params.side_band or 1.0 / params.radius_max,
+                                    path.closed) if params.flip_radius_max > 0.0 else None)
 
     def reset(self, s_hint: float | None = None) -> None:
         """Forget the previous cycle (new run): zero integrator, no rate limits, and a global
@@ -191,13 +196,14 @@ class ReferenceSelector:
         u = max(0.0, min(1.0, 0.5 * (1.0 + K / band)))
         return u * u * (3.0 - 2.0 * u)
 
-    def equilibrium(self, beta_abs: float, K_cmd: float,
-                    w: float | None = None) -> tuple[Equilibrium, Direction, bool]:
+    def equilibrium(self, beta_abs: float, K_cmd: float, w: float | None = None,
+                    flip: bool = True) -> tuple[Equilibrium, Direction, bool]:
         """The map equilibrium for sideslip magnitude [rad] and signed curvature [1/m].
 
         ``w`` is the weight of the left equilibrium (default ``side_weight(K_cmd)``); both sides
-        are looked up at the radius ``1 / |K_cmd|`` limited to the map range. Returns the
-        equilibrium, the direction (NONE while blending) and whether the lookup clamped.
+        are looked up at the radius ``1 / |K_cmd|`` limited to the map range, a blend in a
+        ``flip`` at most at ``flip_radius_max``. Returns the equilibrium, the direction (NONE
+        while blending) and whether the lookup clamped.
         """
         w = self.side_weight(K_cmd) if w is None else w
         radius = self._radius(K_cmd)
@@ -205,7 +211,8 @@ class ReferenceSelector:
             direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
             eq, clamped = self._lookup(beta_abs, radius, direction)
             return eq, direction, clamped
-        radius = min(radius, self._flip_radius)
+        if flip:
+            radius = min(radius, self._flip_radius)
         left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
         return _blend(left, right, w), Direction.NONE, c_l or c_r
@@ -463,23 +470,28 @@ class ReferenceSelector:
             w = w + max(-dw, min(dw, side - w))
             queries.append((beta, K, w))
             weights.append(w)
-        stages = self._equilibria(queries)
+        flips = (self._flips[self.path.index_at(s_all)].tolist()
+                 if self._flips is not None else None)
+        stages = self._equilibria(queries, flips)
         return (tuple(eq for eq, _, _ in stages), tuple(weights), beta, tuple(K_all.tolist()),
                 stages[0])
 
-    def _equilibria(self, queries):
-        """``[equilibrium(beta_abs, K_cmd, w) for ... in queries]``, the map looked up once."""
+    def _equilibria(self, queries, flips=None):
+        """``[equilibrium(beta_abs, K_cmd, w, flip) for ... in queries]``, the map looked up
+        once (``flips``: per query, a blend in a flip; None: every blend)."""
         if self._lookup_many is None:
-            return [self.equilibrium(*q) for q in queries]
+            return [self.equilibrium(*q, flip=flips is None or flips[k])
+                    for k, q in enumerate(queries)]
         asks, plan = [], []   # map queries, and per stage: (direction, where its lookups are)
-        for beta_abs, K_cmd, w in queries:
+        for k, (beta_abs, K_cmd, w) in enumerate(queries):
             radius = self._radius(K_cmd)
             if w in (0.0, 1.0):
                 direction = Direction.LEFT if w == 1.0 else Direction.RIGHT
                 plan.append((direction, len(asks), None, w))
                 asks.append((beta_abs, radius, direction))
             else:
-                radius = min(radius, self._flip_radius)
+                if flips is None or flips[k]:
+                    radius = min(radius, self._flip_radius)
                 plan.append((Direction.NONE, len(asks), len(asks) + 1, w))
                 asks += [(beta_abs, radius, Direction.LEFT), (beta_abs, radius, Direction.RIGHT)]
         found = self._lookup_many(asks)
@@ -491,6 +503,19 @@ class ReferenceSelector:
                 (left, c_l), (right, c_r) = found[i], found[j]
                 out.append((_blend(left, right, w), direction, c_l or c_r))
         return out
+
+
+def flip_samples(K, band: float, closed: bool) -> np.ndarray:
+    """Per path sample: True on a straighter stretch (``|K| < band``) between curves of opposite
+    sides (a flip), False on curves and on straights with a curve of one side only (an exit)."""
+    d = np.where(K >= band, 1, np.where(K <= -band, -1, 0))
+    reps = 2 if closed else 1   # around the lap: the curve before the seam counts
+
+    def last_side(d):
+        dd = np.tile(d, reps)
+        last = np.maximum.accumulate(np.where(dd != 0, np.arange(len(dd)), -1))
+        return np.where(last >= 0, dd[np.maximum(last, 0)], 0)[-len(d):]
+    return (d == 0) & (last_side(d) * last_side(d[::-1])[::-1] < 0)
 
 
 def _speed_rise(stages: tuple[Equilibrium, ...], cap: float,
