@@ -622,24 +622,18 @@ class Nmpc:
         """Torque ramped toward zero, steering rate-limited toward the reference steering.
 
         The ramp starts from the last command or from the torque the powertrain has delivered
-        of it (the modelled lag), whichever is nearer zero: a trip in the middle of a 6000 Nm
-        request the wheels have not yet seen must not deliver it. In TORQUE_ONLY mode the
-        driver steers: the fallback only ramps the torque down and keeps the mode, so no
+        of it (the modelled lag), whichever is nearer zero: a fallback in the middle of a
+        6000 Nm request the wheels have not yet seen must not deliver it. In TORQUE_ONLY mode
+        the driver steers: the fallback only ramps the torque down and keeps the mode, so no
         actuator takes the steering from the driver.
         """
-        Ts, p = self.params.Ts, self.params
         last = self._last
         target = ref.target.delta if ref is not None and ref.is_finite() else last.delta
-        target = self._clip_delta(target)
-        step = _clip(target - last.delta, -p.fallback_delta_rate * Ts, p.fallback_delta_rate * Ts)
-        T_step = p.fallback_torque_rate * Ts
+        T_step = self.params.fallback_torque_rate * self.params.Ts
         start = last.drive_torque
         if math.isfinite(self._T_act) and abs(self._T_act) < abs(start):
             start = self._T_act
-        torque = start - _clip(start, -T_step, T_step)   # one step nearer zero
-        if self.mode == Mode.TORQUE_ONLY:
-            return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
-        return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
+        return self._steered_toward(target, start - _clip(start, -T_step, T_step), now)
 
     def _trip_command(self, state: VehicleState | None, now: float) -> Command:
         """After a supervisor's trip the drift is given up, not continued: the torque off at
@@ -647,18 +641,23 @@ class Nmpc:
         the ground (a spinning wheel has no side grip to give), and the steering rate-limited
         toward the front axle's course (no front slip: the front tyres' aligning moment, which
         a weak steering could not hold, is gone), not toward the drift's counter-steer."""
-        last, Ts = self._last, self.params.Ts
-        torque, target = 0.0, last.delta
+        torque, target = 0.0, self._last.delta
         if state is not None and state.is_finite():
-            target = self._clip_delta(front_axle_course(state.V, state.beta, state.r, self._a))
+            target = front_axle_course(state.V, state.beta, state.r, self._a)
             ground = state.V * math.cos(state.beta)
             if state.omega_R * self._R_R - ground > self.params.fallback_trip_slip * max(ground,
                                                                                           1.0):
                 torque = self.bounds.T_R_min
+        return self._steered_toward(target, torque, now)
+
+    def _steered_toward(self, target: float, torque: float, now: float) -> Command:
+        """A fallback command: ``torque``, the steering rate-limited toward ``target`` [rad]
+        (``fallback_delta_rate``); in TORQUE_ONLY the driver's steering is left alone."""
+        last, Ts = self._last, self.params.Ts
         if self.mode == Mode.TORQUE_ONLY:
             return self._safe(Command(now, last.delta, 0.0, torque, Mode.TORQUE_ONLY))
-        step = _clip(target - last.delta, -self.params.fallback_delta_rate * Ts,
-                     self.params.fallback_delta_rate * Ts)
+        limit = self.params.fallback_delta_rate * Ts
+        step = _clip(self._clip_delta(target) - last.delta, -limit, limit)
         return self._safe(Command(now, last.delta + step, step / Ts, torque, Mode.FALLBACK))
 
     # --- output ---------------------------------------------------------------------------------
