@@ -442,7 +442,6 @@ def test_the_nmpc_trigger_takes_the_phase_of_the_reference_node():
     assert solves[2:] == list(range(3, 40, 2)), 'every odd state, with its reference'
 
 
-
 def test_a_trip_gives_the_drift_up(vp, eq30):
     """After the supervisor's trip the torque is off at once, engine braking while the rear
     wheels spin over the ground, and the steering heads for the front axle's course (here past
