@@ -3,11 +3,13 @@ import json
 import re
 import shutil
 from dataclasses import replace
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from conftest import load_script
-from drift_control.assembly import load_setup, map_file, maps_dir
+from drift_control.assembly import load_setup, map_file, maps_dir, narrow_to_map
 from drift_control.params import ParamError, config_dir, default_vehicle, vehicle_names
 from drift_control.signals import Mode
 
@@ -143,6 +145,16 @@ def test_a_path_tighter_than_the_map_is_refused(cfg):
     _edit(cfg / 'scenarios' / 'steady_dry.yaml', r'^path: .*$', 'path: tight')
     with pytest.raises(ParamError, match=r"tightest radius 6.00 m is below the map's smallest"):
         load_setup(cfg, 'steady_dry')
+
+
+def test_the_flip_radius_is_narrowed_with_the_map_s_radii():
+    """A map reaching less far than ``flip_radius_max`` caps the flip at its widest radius."""
+    setup = load_setup(scenario='alternating_dry')
+    ref = replace(setup.reference, radius_max=40.0, flip_radius_max=30.0)
+    grid = SimpleNamespace(radius=np.array([8.0, 15.0, 25.0]))
+    narrowed = narrow_to_map(ref, grid, setup.path)
+    assert (narrowed.radius_max, narrowed.flip_radius_max) == (25.0, 25.0)
+    assert narrow_to_map(replace(ref, flip_radius_max=0.0), grid, setup.path).flip_radius_max == 0
 
 
 def test_entry_points_give_one_line_for_an_unknown_vehicle(capsys):

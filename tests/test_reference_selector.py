@@ -318,6 +318,8 @@ def test_params_file_loads_and_bad_keys_are_named():
         params(radius_min=60.0)
     with pytest.raises(ParamError, match='k_d'):
         params(k_d=-1.0)
+    with pytest.raises(ParamError, match='flip_radius_max'):
+        params(flip_radius_max=4.0)     # narrower than the map's tightest curve
 
 
 def _drive(sel, path, s0, e0, V, seconds, dt=0.02):

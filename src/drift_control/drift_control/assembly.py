@@ -198,8 +198,9 @@ def check_horizon_steps(reference: ReferenceParams, nmpc: NmpcParams) -> None:
 
 
 def narrow_to_map(reference: ReferenceParams, eqmap, path: Path) -> ReferenceParams:
-    """The selector's radius range within the map's grid; a path curving tighter than the map's
-    smallest radius is refused (its reference would be clamped, silently off the path)."""
+    """The selector's radius range (and flip radius) within the map's grid; a path curving
+    tighter than the map's smallest radius is refused (its reference would be clamped, silently
+    off the path)."""
     r_lo, r_hi = float(eqmap.radius[0]), float(eqmap.radius[-1])
     k_max = float(max(abs(path.K).max(), 1e-12))
     if 1.0 / k_max < r_lo - 1e-6:
@@ -210,7 +211,8 @@ def narrow_to_map(reference: ReferenceParams, eqmap, path: Path) -> ReferencePar
         raise ParamError(f'reference.radius_min/max [{reference.radius_min:g}, '
                          f'{reference.radius_max:g}] m do not overlap the map\'s radii '
                          f'[{r_lo:g}, {r_hi:g}] m')
-    return replace(reference, radius_min=lo, radius_max=hi)
+    flip = reference.flip_radius_max and min(max(reference.flip_radius_max, lo), hi)
+    return replace(reference, radius_min=lo, radius_max=hi, flip_radius_max=flip)
 
 
 __all__ = ['MODES', 'Setup', 'build_maps_command', 'check_horizon_steps', 'load_checked_map',

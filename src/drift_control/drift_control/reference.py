@@ -91,6 +91,10 @@ class ReferenceParams:
         for f in fields(self):
             value = getattr(self, f.name)
             require(value >= 0.0, f'reference.{f.name}', f'must not be negative, got {value}')
+        require(self.flip_radius_max == 0.0
+                or self.radius_min <= self.flip_radius_max <= self.radius_max,
+                'reference.flip_radius_max', 'need 0 (off) or radius_min <= it <= radius_max, '
+                f'got {self.flip_radius_max}')
         require(self.horizon_dt > 0.0, 'reference.horizon_dt', 'must be positive')
         require(self.period > 0.0, 'reference.period', 'must be positive')
 
