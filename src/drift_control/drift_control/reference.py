@@ -182,8 +182,8 @@ class ReferenceSelector:
         self.rejected = 0      # states refused as non-finite or without a pose
         self._speed_plan = self._plan_speed() if params.drift_speed_fall > 0.0 else None
         #: per path sample: a flip's stretch, where a blend is looked up at ``flip_radius_max``
-        self._flips = (flip_samples(path.K, params.side_band or 1.0 / params.radius_max,
-                                    path.closed) if params.flip_radius_max > 0.0 else None)
+        self._flips = (flip_samples(path.K, self._band, path.closed)
+                       if params.flip_radius_max > 0.0 else None)
 
     def reset(self, s_hint: float | None = None) -> None:
         """Forget the previous cycle (new run): zero integrator, no rate limits, and a global
@@ -196,7 +196,7 @@ class ReferenceSelector:
         """Weight of the left equilibrium [-]: 1 for ``K >= band``, 0 for ``K <= -band``, a
         smoothstep in between (``band = side_band``, or ``1/radius_max``): the sideslip and
         yaw-rate references start and end a flip without a jump in their rates."""
-        band = self.p.side_band or 1.0 / self.p.radius_max
+        band = self._band
         u = max(0.0, min(1.0, 0.5 * (1.0 + K / band)))
         return u * u * (3.0 - 2.0 * u)
 
@@ -220,6 +220,12 @@ class ReferenceSelector:
         left, c_l = self._lookup(beta_abs, radius, Direction.LEFT)
         right, c_r = self._lookup(beta_abs, radius, Direction.RIGHT)
         return _blend(left, right, w), Direction.NONE, c_l or c_r
+
+    @property
+    def _band(self) -> float:
+        """|K| below which left and right are blended [1/m]: ``side_band``, or the curvature
+        of ``radius_max``."""
+        return self.p.side_band or 1.0 / self.p.radius_max
 
     @property
     def _flip_radius(self) -> float:
@@ -247,7 +253,7 @@ class ReferenceSelector:
         right references cancel and the correction would steer nothing."""
         p = self.p
         return p.side_from_path and (beta_abs > p.side_from_path_beta
-                                     or abs(K_path) >= (p.side_band or 1.0 / p.radius_max))
+                                     or abs(K_path) >= self._band)
 
     def _catch(self, state: VehicleState, s: float) -> float:
         """The sideslip of a slide the entry catches [rad] (0: none).
@@ -456,7 +462,7 @@ class ReferenceSelector:
         planned = self.path.side_at(s_k).tolist() if self.path.side is not None else None
         # _limit and side_weight written out: 24 stages a cycle, the same operations
         dK, dbeta, dw = p.curvature_rate_max * h, p.beta_rate_max * h, p.side_rate_max * h
-        band = p.side_band or 1.0 / p.radius_max
+        band = self._band
         from_path, path_beta = p.side_from_path, p.side_from_path_beta
         for k, (K_path, beta_path) in enumerate(zip(K_paths.tolist(),
                                                     np.broadcast_to(betas, s_k.shape).tolist())):
